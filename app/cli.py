@@ -1,0 +1,158 @@
+"""The ``floornav`` command line (also ``python -m app``)."""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import sys
+from collections.abc import Sequence
+from pathlib import Path
+
+from app.config import DEFAULT_CONFIG_PATH, ConfigError, FloornavConfig, load_config
+
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+DEFAULT_DATASETS_DIR = PROJECT_ROOT.parent / "shared" / "datasets"
+
+
+def _json_safe(value: object) -> object:
+    """Replace NaN/inf (not valid JSON) with null, recursively."""
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
+    if isinstance(value, dict):
+        return {k: _json_safe(v) for k, v in value.items()}
+    if isinstance(value, list | tuple):
+        return [_json_safe(v) for v in value]
+    return value
+
+
+def _print_json(value: object) -> None:
+    print(json.dumps(_json_safe(value), indent=2, allow_nan=False))
+
+
+def _load(path: Path) -> FloornavConfig:
+    return load_config(path)
+
+
+def cmd_validate_config(args: argparse.Namespace) -> int:
+    try:
+        load_config(args.path)
+    except ConfigError as exc:
+        print(f"{exc.source}: {len(exc.issues)} error(s)")
+        for issue in exc.issues:
+            print(f"  {issue}")
+        return 1
+    print("ok")
+    return 0
+
+
+def cmd_segment(args: argparse.Namespace) -> int:
+    from app.imageio import read_bgr, write_image_atomic
+    from app.perception.overlay import draw_overlay
+    from app.perception.pipeline import FloorSegmenter
+
+    config = _load(args.config)
+    segmenter = FloorSegmenter(config.perception, method=args.method)
+    image = read_bgr(args.image)
+    result = segmenter.segment(image)
+    height, width = image.shape[:2]
+    overlay = draw_overlay(
+        image,
+        result.floor_mask,
+        safe_zone_corners_px=segmenter.zone.corners_px(width, height),
+        labels=result.labels,
+    )
+    out = args.out or Path(f"{args.image.stem}_floor.overlay.png")
+    write_image_atomic(out, overlay)
+    floor_pct = 100.0 * float(result.floor_mask.mean())
+    timings = ", ".join(f"{k} {v:.1f}" for k, v in result.timings_ms.items())
+    print(f"{args.image}: method {result.method}, floor {floor_pct:.1f}% of the image")
+    print(f"timings ms: {timings}")
+    print(f"overlay written to {out}")
+    return 0
+
+
+def cmd_eval(args: argparse.Namespace) -> int:
+    from app.evaluation import evaluate, format_table, stderr_progress
+    from app.perception.pipeline import METHODS
+
+    config = _load(args.config)
+    methods = sorted(METHODS) if args.method == "all" else [args.method or config.perception.method]
+    report = evaluate(args.folders, methods, config.perception, progress=stderr_progress)
+    summary = report.summary(config.perception.method)
+    if args.json:
+        _print_json(summary)
+    else:
+        print(format_table(summary))
+    return 0 if any(report.per_dataset.get(n) for n in report.per_dataset) else 1
+
+
+def cmd_bench(args: argparse.Namespace) -> int:
+    from app.bench import format_bench, run_bench
+
+    config = _load(args.config)
+    result = run_bench(config.perception, args.datasets, repeats=args.repeats)
+    if args.json:
+        _print_json(result)
+    else:
+        print(format_bench(result))
+    return 0
+
+
+def build_parser() -> argparse.ArgumentParser:
+    parser = argparse.ArgumentParser(
+        prog="floornav",
+        description="Monocular floor segmentation, mapping and navigation for an indoor robot.",
+    )
+    sub = parser.add_subparsers(dest="command", required=True)
+
+    def add_config(p: argparse.ArgumentParser) -> None:
+        p.add_argument(
+            "--config", type=Path, default=DEFAULT_CONFIG_PATH, help="config file (TOML)"
+        )
+
+    p = sub.add_parser("validate-config", help="check a config file; print 'ok' or each error")
+    p.add_argument("path", type=Path, nargs="?", default=DEFAULT_CONFIG_PATH)
+    p.set_defaults(func=cmd_validate_config)
+
+    p = sub.add_parser("segment", help="segment the floor in one image and write an overlay")
+    p.add_argument("image", type=Path)
+    p.add_argument("--method", help="segmentation method (default: from config)")
+    p.add_argument("--out", type=Path, help="overlay PNG (default: IMAGE_floor.overlay.png)")
+    add_config(p)
+    p.set_defaults(func=cmd_segment)
+
+    p = sub.add_parser("eval", help="score methods on folders of NAME.jpg + NAME_floor.png")
+    p.add_argument("folders", type=Path, nargs="+", metavar="DIR")
+    p.add_argument("--method", help="a method name, or 'all' (default: from config)")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_config(p)
+    p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser("bench", help="time the pipeline's stages against the reference")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument("--repeats", type=int, default=5, help="passes over the bench images")
+    p.add_argument(
+        "--datasets", type=Path, default=DEFAULT_DATASETS_DIR, help="the shared datasets folder"
+    )
+    add_config(p)
+    p.set_defaults(func=cmd_bench)
+    return parser
+
+
+def main(argv: Sequence[str] | None = None) -> int:
+    parser = build_parser()
+    args = parser.parse_args(argv)
+    try:
+        code: int = args.func(args)
+    except ConfigError as exc:
+        print(f"floornav: {exc}", file=sys.stderr)
+        return 2
+    except (ValueError, OSError) as exc:
+        print(f"floornav: error: {exc}", file=sys.stderr)
+        return 1
+    return code
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())

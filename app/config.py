@@ -1,0 +1,196 @@
+"""The one typed configuration of floornav, loaded from ``config.toml``.
+
+Every section is a strict pydantic model: unknown keys are rejected, every number has
+bounds, and units are part of the field names (``_px``, ``_rad``, ``_frac``, ...). Any
+value can be overridden from the environment as ``FLOORNAV_<SECTION>__<KEY>``, for example
+``FLOORNAV_PERCEPTION__SMOOTHING_SIGMA_PX=3``. Precedence: explicit keyword arguments >
+environment > ``config.toml`` > defaults here.
+"""
+
+from __future__ import annotations
+
+import contextvars
+import tomllib
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Annotated, Any, Literal
+
+from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic_settings import (
+    BaseSettings,
+    PydanticBaseSettingsSource,
+    SettingsConfigDict,
+    TomlConfigSettingsSource,
+)
+
+DEFAULT_CONFIG_PATH = Path("config.toml")
+
+FloorMethod = Literal["thesis", "thesis_junction", "flood_fill", "floornav"]
+"""Floor segmentation methods selectable by name (see ``app.perception.pipeline``)."""
+
+Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
+
+
+class StrictModel(BaseModel):
+    """Base of every config section: unknown keys are errors, values are immutable."""
+
+    model_config = ConfigDict(extra="forbid", frozen=True)
+
+
+class SafeZoneConfig(StrictModel):
+    """Trapezoid in front of the robot that is assumed to be floor.
+
+    Corners are fractions of the image width (x) and height (y), origin top-left.
+    The bottom edge spans ``bottom_left_x_frac..bottom_right_x_frac`` at ``bottom_y_frac``,
+    the top edge ``top_left_x_frac..top_right_x_frac`` at ``top_y_frac``.
+    """
+
+    bottom_left_x_frac: Fraction = 0.25
+    bottom_right_x_frac: Fraction = 0.75
+    top_left_x_frac: Fraction = 0.40
+    top_right_x_frac: Fraction = 0.60
+    top_y_frac: Fraction = 0.80
+    bottom_y_frac: Fraction = 1.0
+
+    @model_validator(mode="after")
+    def _check_shape(self) -> SafeZoneConfig:
+        if not self.bottom_left_x_frac < self.bottom_right_x_frac:
+            raise ValueError("bottom_left_x_frac must be smaller than bottom_right_x_frac")
+        if not self.top_left_x_frac < self.top_right_x_frac:
+            raise ValueError("top_left_x_frac must be smaller than top_right_x_frac")
+        if not self.top_y_frac < self.bottom_y_frac:
+            raise ValueError("top_y_frac must be smaller than bottom_y_frac (y grows downwards)")
+        return self
+
+
+class JunctionConfig(StrictModel):
+    """Floor-junction masking (Canny, contours, probabilistic Hough lines)."""
+
+    canny_low: Annotated[int, Field(ge=0, le=1000)] = 20
+    canny_high: Annotated[int, Field(ge=1, le=1000)] = 60
+    hough_threshold: Annotated[int, Field(ge=1, le=1000)] = 20
+    min_line_length_frac: Annotated[float, Field(gt=0.0, le=1.0)] = 0.06
+    max_line_gap_px: Annotated[int, Field(ge=0, le=200)] = 4
+    vertical_tolerance_rad: Annotated[float, Field(ge=0.0, le=0.8)] = 0.2
+    junction_radius_frac: Annotated[float, Field(gt=0.0, le=0.5)] = 0.03
+
+    @model_validator(mode="after")
+    def _check_canny(self) -> JunctionConfig:
+        if self.canny_low > self.canny_high:
+            raise ValueError("canny_low must not exceed canny_high")
+        return self
+
+
+class PerceptionConfig(StrictModel):
+    """Floor segmentation from one camera frame (thesis chapters 2-5)."""
+
+    method: FloorMethod = "thesis_junction"
+    smoothing_sigma_px: Annotated[float, Field(ge=0.0, le=20.0)] = 5.0
+    color_space: Literal["lab", "rgb"] = "lab"
+    slic_backend: Literal["numba", "skimage"] = "numba"
+    n_superpixels: Annotated[int, Field(ge=4, le=5000)] = 200
+    compactness: Annotated[float, Field(gt=0.0, le=100.0)] = 10.0
+    slic_max_iter: Annotated[int, Field(ge=1, le=50)] = 10
+    flood_fill_tolerance: Annotated[float, Field(gt=0.0, le=100.0)] = 10.0
+    safe_zone: SafeZoneConfig = SafeZoneConfig()
+    junction: JunctionConfig = JunctionConfig()
+
+
+_toml_path: contextvars.ContextVar[Path | None] = contextvars.ContextVar(
+    "floornav_config_path", default=None
+)
+
+
+class FloornavConfig(BaseSettings):
+    """Root of the configuration tree (one section per subsystem)."""
+
+    model_config = SettingsConfigDict(
+        extra="forbid",
+        frozen=True,
+        env_prefix="FLOORNAV_",
+        env_nested_delimiter="__",
+        case_sensitive=False,
+    )
+
+    perception: PerceptionConfig = PerceptionConfig()
+
+    @classmethod
+    def settings_customise_sources(
+        cls,
+        settings_cls: type[BaseSettings],
+        init_settings: PydanticBaseSettingsSource,
+        env_settings: PydanticBaseSettingsSource,
+        dotenv_settings: PydanticBaseSettingsSource,
+        file_secret_settings: PydanticBaseSettingsSource,
+    ) -> tuple[PydanticBaseSettingsSource, ...]:
+        path = _toml_path.get()
+        sources: list[PydanticBaseSettingsSource] = [init_settings, env_settings]
+        if path is not None:
+            sources.append(TomlConfigSettingsSource(settings_cls, toml_file=path))
+        return tuple(sources)
+
+
+@dataclass(frozen=True)
+class ConfigIssue:
+    """One validation problem, with the dotted key path it belongs to."""
+
+    key: str
+    message: str
+
+    def __str__(self) -> str:
+        return f"{self.key}: {self.message}"
+
+
+class ConfigError(Exception):
+    """The configuration could not be loaded; ``issues`` names every bad key."""
+
+    def __init__(self, source: str, issues: list[ConfigIssue]) -> None:
+        self.source = source
+        self.issues = issues
+        lines = "\n".join(f"  {issue}" for issue in issues)
+        super().__init__(f"invalid configuration in {source}:\n{lines}")
+
+
+def _issues_from_validation(error: ValidationError) -> list[ConfigIssue]:
+    issues = []
+    for item in error.errors():
+        key = ".".join(str(part) for part in item["loc"]) or "<root>"
+        message = item["msg"]
+        if item["type"] not in ("extra_forbidden", "missing") and "input" in item:
+            message = f"{message} (got {item['input']!r})"
+        issues.append(ConfigIssue(key=key, message=message))
+    return issues
+
+
+def load_config(path: Path | None = DEFAULT_CONFIG_PATH, **overrides: Any) -> FloornavConfig:
+    """Load and validate the configuration.
+
+    Parameters
+    ----------
+    path : Path or None
+        TOML file to read. ``None`` uses the built-in defaults plus the environment.
+    **overrides
+        Section values that take precedence over everything (used by tests and the CLI).
+
+    Raises
+    ------
+    ConfigError
+        The file is missing or not valid TOML, or a value is out of bounds or unknown;
+        each issue names its dotted key path (``perception.safe_zone.top_y_frac``).
+    """
+    source = str(path) if path is not None else "<defaults>"
+    if path is not None:
+        if not path.is_file():
+            raise ConfigError(source, [ConfigIssue("<file>", "file not found")])
+        try:
+            with path.open("rb") as handle:
+                tomllib.load(handle)
+        except tomllib.TOMLDecodeError as exc:
+            raise ConfigError(source, [ConfigIssue("<file>", f"not valid TOML: {exc}")]) from exc
+    token = _toml_path.set(path)
+    try:
+        return FloornavConfig(**overrides)
+    except ValidationError as exc:
+        raise ConfigError(source, _issues_from_validation(exc)) from exc
+    finally:
+        _toml_path.reset(token)

@@ -1,0 +1,159 @@
+"""``floornav eval``: accuracy of segmentation methods on folders of labelled images.
+
+A labelled image is ``NAME.jpg`` (or .jpeg/.png) with ``NAME_floor.png`` beside it
+(8-bit, 255 = floor). Files that cannot be used are skipped with their reason; the run
+goes on.
+"""
+
+from __future__ import annotations
+
+import sys
+from collections.abc import Callable, Iterable
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from app.config import PerceptionConfig
+from app.imageio import read_bgr, read_mask
+from app.perception.image_checks import ImageError
+from app.perception.metrics import FloorScores, floor_scores, mean_scores
+from app.perception.pipeline import METHODS, FloorSegmenter
+
+MASK_SUFFIX = "_floor.png"
+IMAGE_SUFFIXES = (".jpg", ".jpeg", ".png")
+
+
+@dataclass(frozen=True)
+class LabelledImage:
+    image_path: Path
+    mask_path: Path
+
+
+@dataclass
+class DatasetListing:
+    """Labelled images found in a folder, and files skipped with the reason."""
+
+    folder: Path
+    items: list[LabelledImage] = field(default_factory=list)
+    skipped: list[tuple[Path, str]] = field(default_factory=list)
+
+
+def list_labelled_images(folder: Path) -> DatasetListing:
+    """Pair every image in ``folder`` with its ``_floor.png`` mask (sorted by name)."""
+    listing = DatasetListing(folder)
+    if not folder.is_dir():
+        listing.skipped.append((folder, "not a folder"))
+        return listing
+    for path in sorted(folder.iterdir()):
+        if path.name.endswith(MASK_SUFFIX) or path.suffix.lower() not in IMAGE_SUFFIXES:
+            continue
+        mask_path = path.with_name(path.stem + MASK_SUFFIX)
+        if mask_path.is_file():
+            listing.items.append(LabelledImage(path, mask_path))
+        else:
+            listing.skipped.append((path, f"no mask {mask_path.name}"))
+    return listing
+
+
+@dataclass
+class EvalReport:
+    """Scores per folder and method, and what was skipped."""
+
+    methods: list[str]
+    per_dataset: dict[str, dict[str, list[FloorScores]]] = field(default_factory=dict)
+    skipped: list[tuple[str, str]] = field(default_factory=list)
+
+    def summary(self, default_method: str) -> dict[str, object]:
+        """The JSON object of ``floornav eval --json``."""
+        overall: dict[str, list[FloorScores]] = {m: [] for m in self.methods}
+        datasets: dict[str, dict[str, dict[str, float | int]]] = {}
+        for name, by_method in self.per_dataset.items():
+            datasets[name] = {m: mean_scores(scores) for m, scores in by_method.items()}
+            for method, scores in by_method.items():
+                overall[method].extend(scores)
+        return {
+            "default_method": default_method,
+            "methods": {m: mean_scores(scores) for m, scores in overall.items()},
+            "datasets": datasets,
+            "skipped": [{"file": f, "reason": r} for f, r in self.skipped],
+        }
+
+
+ProgressFn = Callable[[int, int, str], None]
+
+
+def stderr_progress(done: int, total: int, label: str) -> None:
+    """A one-line progress bar on stderr (a plain line every 25 items when not a TTY)."""
+    if sys.stderr.isatty():
+        width = 30
+        filled = width * done // max(total, 1)
+        bar = "#" * filled + "-" * (width - filled)
+        end = "\n" if done == total else ""
+        sys.stderr.write(f"\r[{bar}] {done}/{total} {label[:40]:<40}{end}")
+        sys.stderr.flush()
+    elif done == total or done % 25 == 0:
+        sys.stderr.write(f"eval: {done}/{total} images\n")
+
+
+def evaluate(
+    folders: Iterable[Path],
+    methods: list[str],
+    config: PerceptionConfig,
+    *,
+    progress: ProgressFn | None = None,
+) -> EvalReport:
+    """Run each method on each labelled image and score it against its mask."""
+    for method in methods:
+        if method not in METHODS:
+            raise ValueError(f"unknown method {method!r}; choose from {sorted(METHODS)}")
+    report = EvalReport(methods=list(methods))
+    segmenters = {m: FloorSegmenter(config, method=m) for m in methods}
+    listings = [list_labelled_images(Path(f)) for f in folders]
+    total = sum(len(listing.items) for listing in listings)
+    done = 0
+    for listing in listings:
+        name = listing.folder.resolve().name
+        by_method = report.per_dataset.setdefault(name, {m: [] for m in methods})
+        report.skipped.extend((str(p), reason) for p, reason in listing.skipped)
+        for item in listing.items:
+            try:
+                image = read_bgr(item.image_path)
+                truth = read_mask(item.mask_path, image.shape[:2])
+                for method, segmenter in segmenters.items():
+                    result = segmenter.segment(image)
+                    by_method[method].append(floor_scores(result.floor_mask, truth))
+            except (ImageError, ValueError) as exc:
+                report.skipped.append((str(item.image_path), str(exc)))
+            done += 1
+            if progress is not None:
+                progress(done, total, item.image_path.name)
+    return report
+
+
+def format_table(summary: dict[str, object]) -> str:
+    """Human-readable tables: one per dataset, one row per method, then all datasets."""
+    lines: list[str] = []
+    header = f"{'method':<18}{'iou':>8}{'recall':>9}{'precision':>11}{'near_FF':>9}{'images':>8}"
+
+    def rows(table: dict[str, dict[str, float | int]]) -> None:
+        lines.append(header)
+        for method, s in table.items():
+            lines.append(
+                f"{method:<18}{s['iou']:>8.3f}{s['floor_recall']:>9.3f}"
+                f"{s['floor_precision']:>11.3f}{s['near_false_floor']:>9.3f}{s['images']:>8d}"
+            )
+
+    datasets = summary["datasets"]
+    assert isinstance(datasets, dict)
+    for name, table in datasets.items():
+        lines.append(f"\n== {name}")
+        rows(table)
+    methods = summary["methods"]
+    assert isinstance(methods, dict)
+    lines.append(f"\n== all datasets (default method: {summary['default_method']})")
+    rows(methods)
+    skipped = summary["skipped"]
+    assert isinstance(skipped, list)
+    if skipped:
+        lines.append(f"\nskipped {len(skipped)} file(s):")
+        lines.extend(f"  {s['file']}: {s['reason']}" for s in skipped)
+    return "\n".join(lines)

@@ -1,0 +1,46 @@
+"""Drawing a segmentation result on its frame for people to look at."""
+
+from __future__ import annotations
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+from skimage.segmentation import find_boundaries
+
+FLOOR_TINT_BGR = (60, 200, 60)
+SAFE_ZONE_BGR = (0, 0, 255)
+BORDER_BGR = (255, 255, 0)
+
+
+def draw_overlay(
+    image_bgr: NDArray[np.uint8],
+    floor_mask: NDArray[np.bool_],
+    *,
+    safe_zone_corners_px: NDArray[np.float64] | None = None,
+    labels: NDArray[np.int32] | None = None,
+    alpha: float = 0.45,
+) -> NDArray[np.uint8]:
+    """Tint the floor, outline the safe zone and draw superpixel borders.
+
+    Parameters
+    ----------
+    image_bgr : (H, W, 3) uint8
+    floor_mask : (H, W) bool
+    safe_zone_corners_px : (4, 2) float, optional (`Trapezoid.corners_px`)
+    labels : (H, W) int32, optional superpixel labels whose borders are drawn
+    alpha : float, tint opacity
+
+    Returns
+    -------
+    (H, W, 3) uint8, a new image.
+    """
+    out = image_bgr.copy()
+    tint = np.array(FLOOR_TINT_BGR, dtype=np.float32)
+    floor_px = out[floor_mask].astype(np.float32)
+    out[floor_mask] = ((1.0 - alpha) * floor_px + alpha * tint).astype(np.uint8)
+    if labels is not None:
+        out[find_boundaries(labels, mode="inner")] = BORDER_BGR
+    if safe_zone_corners_px is not None:
+        corners = np.round(safe_zone_corners_px).astype(np.int32)
+        cv2.polylines(out, [corners], isClosed=True, color=SAFE_ZONE_BGR, thickness=2)
+    return out

@@ -1,0 +1,238 @@
+"""The floor segmentation pipeline: stages of the thesis wired together, by method name.
+
+Methods (``PerceptionConfig.method``):
+
+``thesis``
+    Smoothing, Lab, SLIC, the 7 features, safe-zone sampling, the normalised SSD
+    classifier and BFS region growing from the superpixel under the safe-zone centroid.
+``thesis_junction``
+    ``thesis`` ANDed with the floor-junction mask (the thesis's final result).
+``flood_fill``
+    The thesis's pixel baseline: flood fill of the smoothed Lab image from the seed.
+"""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from app.config import PerceptionConfig, SafeZoneConfig
+from app.perception.classify import ssd_classify
+from app.perception.features import (
+    AdjacencyGraph,
+    SuperpixelFeatures,
+    adjacency_graph,
+    superpixel_features,
+)
+from app.perception.image_checks import check_bgr_image
+from app.perception.junctions import JunctionResult, floor_junction_mask
+from app.perception.preprocess import smooth, to_color_space, to_gray
+from app.perception.region import flood_fill_floor, grow_region
+from app.perception.safe_zone import Trapezoid, safe_zone_mask, safe_zone_superpixels
+from app.perception.slic import slic_superpixels
+
+
+@dataclass(frozen=True)
+class FloorResult:
+    """Output of `FloorSegmenter.segment`.
+
+    Attributes
+    ----------
+    floor_mask : (H, W) bool
+        True where the floor (free space) is, at the input image's size.
+    labels : (H, W) int32 or None
+        Superpixel labels 0..n-1 (None for pixel methods).
+    superpixel_floor : (n,) bool or None
+        Which superpixels were classified as floor.
+    safe_zone_mask : (H, W) bool
+    method : str
+    timings_ms : dict
+        Wall time of each stage in milliseconds, in pipeline order, plus ``"total"``.
+    """
+
+    floor_mask: NDArray[np.bool_]
+    labels: NDArray[np.int32] | None
+    superpixel_floor: NDArray[np.bool_] | None
+    safe_zone_mask: NDArray[np.bool_]
+    method: str
+    timings_ms: dict[str, float] = field(default_factory=dict)
+
+
+def trapezoid_from_config(zone: SafeZoneConfig) -> Trapezoid:
+    return Trapezoid(
+        bottom_left_x_frac=zone.bottom_left_x_frac,
+        bottom_right_x_frac=zone.bottom_right_x_frac,
+        top_left_x_frac=zone.top_left_x_frac,
+        top_right_x_frac=zone.top_right_x_frac,
+        top_y_frac=zone.top_y_frac,
+        bottom_y_frac=zone.bottom_y_frac,
+    )
+
+
+class _Stopwatch:
+    """Records the wall time between successive ``lap`` calls, per stage name."""
+
+    def __init__(self) -> None:
+        self.timings_ms: dict[str, float] = {}
+        self._start = self._last = time.perf_counter()
+
+    def lap(self, stage: str) -> None:
+        now = time.perf_counter()
+        self.timings_ms[stage] = self.timings_ms.get(stage, 0.0) + (now - self._last) * 1e3
+        self._last = now
+
+    def finish(self) -> dict[str, float]:
+        self.timings_ms["total"] = (time.perf_counter() - self._start) * 1e3
+        return self.timings_ms
+
+
+@dataclass(frozen=True)
+class _Superpixels:
+    smoothed_bgr: NDArray[np.uint8]
+    color: NDArray[np.float32]
+    labels: NDArray[np.int32]
+    features: SuperpixelFeatures
+    graph: AdjacencyGraph
+    zone_mask: NDArray[np.bool_]
+    in_zone: NDArray[np.bool_]
+    seeds: NDArray[np.bool_]
+
+
+class FloorSegmenter:
+    """Segments the floor in camera frames with one configured method.
+
+    Holds the configuration and the buffers reused from frame to frame; not thread-safe
+    (use one instance per thread). ``segment`` is a pure function of its input frame.
+    """
+
+    def __init__(self, config: PerceptionConfig, *, method: str | None = None) -> None:
+        self.config = config
+        self.method = method or config.method
+        if self.method not in METHODS:
+            raise ValueError(f"unknown method {self.method!r}; choose one of {sorted(METHODS)}")
+        self.zone = trapezoid_from_config(config.safe_zone)
+        self._zone_cache: tuple[tuple[int, int], NDArray[np.bool_]] | None = None
+        self._color_buffer: NDArray[np.float32] | None = None
+
+    def zone_mask(self, shape: tuple[int, int]) -> NDArray[np.bool_]:
+        if self._zone_cache is None or self._zone_cache[0] != shape:
+            self._zone_cache = (shape, safe_zone_mask(shape, self.zone))
+        return self._zone_cache[1]
+
+    def segment(self, image: NDArray[np.uint8]) -> FloorResult:
+        """Segment one frame.
+
+        Parameters
+        ----------
+        image : (H, W, 3) uint8 BGR (grayscale and BGRA are accepted and converted).
+
+        Raises
+        ------
+        app.perception.image_checks.ImageError
+            Not an 8-bit image, or too small.
+        app.perception.safe_zone.SafeZoneError
+            The safe zone does not fit the image.
+        """
+        bgr = check_bgr_image(image)
+        return METHODS[self.method](self, bgr)
+
+    # -- shared front end ------------------------------------------------------------
+
+    def _color(self, smoothed: NDArray[np.uint8]) -> NDArray[np.float32]:
+        shape = smoothed.shape
+        if self._color_buffer is None or self._color_buffer.shape != shape:
+            self._color_buffer = np.empty(shape, dtype=np.float32)
+        return to_color_space(smoothed, space=self.config.color_space, out=self._color_buffer)
+
+    def superpixels(self, bgr: NDArray[np.uint8], watch: _Stopwatch) -> _Superpixels:
+        cfg = self.config
+        zone_mask = self.zone_mask(bgr.shape[:2])
+        watch.lap("safe_zone")
+        smoothed = smooth(bgr, sigma_px=cfg.smoothing_sigma_px)
+        watch.lap("smooth")
+        color = self._color(smoothed)
+        watch.lap("color")
+        labels = slic_superpixels(
+            color,
+            n_segments=cfg.n_superpixels,
+            compactness=cfg.compactness,
+            max_iter=cfg.slic_max_iter,
+            backend=cfg.slic_backend,
+        )
+        watch.lap("slic")
+        features = superpixel_features(labels, color)
+        graph = adjacency_graph(labels, features.n)
+        watch.lap("features")
+        in_zone = safe_zone_superpixels(labels, zone_mask, features.n)
+        seed_x, seed_y = self.zone.seed_xy(bgr.shape[1], bgr.shape[0])
+        seeds = np.zeros(features.n, dtype=bool)
+        seeds[labels[seed_y, seed_x]] = True
+        watch.lap("sampling")
+        return _Superpixels(smoothed, color, labels, features, graph, zone_mask, in_zone, seeds)
+
+    def junctions(self, smoothed: NDArray[np.uint8]) -> JunctionResult:
+        j = self.config.junction
+        height, width = smoothed.shape[:2]
+        diagonal = float(np.hypot(width, height))
+        return floor_junction_mask(
+            to_gray(smoothed),
+            canny_low=j.canny_low,
+            canny_high=j.canny_high,
+            hough_threshold=j.hough_threshold,
+            min_line_length_px=max(2, round(j.min_line_length_frac * diagonal)),
+            max_line_gap_px=j.max_line_gap_px,
+            vertical_tolerance_rad=j.vertical_tolerance_rad,
+            junction_radius_px=j.junction_radius_frac * diagonal,
+        )
+
+
+def _thesis_region(sp: _Superpixels) -> NDArray[np.bool_]:
+    classification = ssd_classify(sp.features.thesis_vector(), sp.in_zone)
+    return grow_region(sp.graph, sp.seeds, classification.is_floor)
+
+
+def _segment_thesis(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorResult:
+    watch = _Stopwatch()
+    sp = seg.superpixels(bgr, watch)
+    region = _thesis_region(sp)
+    floor = region[sp.labels]
+    watch.lap("classify")
+    return FloorResult(floor, sp.labels, region, sp.zone_mask, "thesis", watch.finish())
+
+
+def _segment_thesis_junction(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorResult:
+    watch = _Stopwatch()
+    sp = seg.superpixels(bgr, watch)
+    region = _thesis_region(sp)
+    watch.lap("classify")
+    junction = seg.junctions(sp.smoothed_bgr)
+    watch.lap("junctions")
+    floor = region[sp.labels] & junction.mask
+    watch.lap("combine")
+    return FloorResult(floor, sp.labels, region, sp.zone_mask, "thesis_junction", watch.finish())
+
+
+def _segment_flood_fill(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorResult:
+    watch = _Stopwatch()
+    zone_mask = seg.zone_mask(bgr.shape[:2])
+    watch.lap("safe_zone")
+    smoothed = smooth(bgr, sigma_px=seg.config.smoothing_sigma_px)
+    watch.lap("smooth")
+    lab_u8 = cv2.cvtColor(smoothed, cv2.COLOR_BGR2Lab)
+    watch.lap("color")
+    seed = seg.zone.seed_xy(bgr.shape[1], bgr.shape[0])
+    floor = flood_fill_floor(lab_u8, seed, tolerance=seg.config.flood_fill_tolerance)
+    watch.lap("flood_fill")
+    return FloorResult(floor, None, None, zone_mask, "flood_fill", watch.finish())
+
+
+METHODS: dict[str, Callable[[FloorSegmenter, NDArray[np.uint8]], FloorResult]] = {
+    "thesis": _segment_thesis,
+    "thesis_junction": _segment_thesis_junction,
+    "flood_fill": _segment_flood_fill,
+}

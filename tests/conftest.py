@@ -1,0 +1,46 @@
+"""Shared fixtures: paths to the real datasets (skipped when absent) and synthetic scenes."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+PROJECT_ROOT = Path(__file__).resolve().parents[1]
+DATASETS = PROJECT_ROOT.parent / "shared" / "datasets"
+FLOOR_DATASETS = ("robot-hand-floor", "hospital-ground", "umd-drivable-toy")
+
+
+def dataset_dir(name: str) -> Path:
+    """The shared dataset folder ``name``, or skip the test with the reason."""
+    path = DATASETS / name
+    if not path.is_dir():
+        pytest.skip(f"shared dataset {path} is absent (CI clones ../shared beside the project)")
+    return path
+
+
+def room_scene(
+    width: int = 160, height: int = 120, *, horizon_frac: float = 0.45, seed: int = 0
+) -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
+    """A synthetic room: a grey-blue wall above a brown floor, a red box standing on the
+    floor at the left, mild noise. Returns the BGR image and its true floor mask."""
+    rng = np.random.default_rng(seed)
+    image = np.empty((height, width, 3), np.uint8)
+    horizon = int(horizon_frac * height)
+    image[:horizon] = (170, 160, 150)
+    image[horizon:] = (60, 100, 140)
+    truth = np.zeros((height, width), bool)
+    truth[horizon:] = True
+    box_x0, box_x1 = width // 10, width // 10 + width // 6
+    box_y0, box_y1 = horizon - height // 10, horizon + height // 5
+    image[box_y0:box_y1, box_x0:box_x1] = (30, 30, 200)
+    truth[box_y0:box_y1, box_x0:box_x1] = False
+    noise = rng.integers(-4, 5, image.shape)
+    return np.clip(image.astype(int) + noise, 0, 255).astype(np.uint8), truth
+
+
+@pytest.fixture
+def room() -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
+    return room_scene()
