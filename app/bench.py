@@ -67,6 +67,11 @@ def bench_images(datasets_dir: Path, limit: int = 12) -> tuple[list[NDArray[np.u
     return [frame], "synthetic frame (shared datasets not found)"
 
 
+def resize_u8(image: NDArray[np.uint8], width: int, height: int) -> NDArray[np.uint8]:
+    resized = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+    return np.asarray(resized, dtype=np.uint8)
+
+
 def pin_to_one_cpu() -> str:
     cv2.setNumThreads(1)
     if hasattr(os, "sched_setaffinity"):
@@ -107,7 +112,7 @@ def run_bench(
     result: dict[str, object] = {"images": source, "pinned": pinned, "method": config.method}
     resolutions: dict[str, object] = {}
     for width, height in RESOLUTIONS:
-        frames = [cv2.resize(im, (width, height), interpolation=cv2.INTER_AREA) for im in images]
+        frames = [resize_u8(im, width, height) for im in images]
         stats = time_pipeline(FloorSegmenter(config), frames, repeats)
         total = stats.pop("total")
         resolutions[f"{width}x{height}"] = {
@@ -119,7 +124,7 @@ def run_bench(
         }
     result["resolutions"] = resolutions
     reference_config = config.model_copy(update={"slic_backend": "skimage"})
-    frames = [cv2.resize(im, (640, 480), interpolation=cv2.INTER_AREA) for im in images]
+    frames = [resize_u8(im, 640, 480) for im in images]
     ref = time_pipeline(FloorSegmenter(reference_config), frames, reference_repeats)
     ref_total = ref.pop("total")
     default_total = resolutions["640x480"]

@@ -84,7 +84,12 @@ def cmd_eval(args: argparse.Namespace) -> int:
         _print_json(summary)
     else:
         print(format_table(summary))
-    return 0 if any(report.per_dataset.get(n) for n in report.per_dataset) else 1
+    scored = any(
+        scores for by_method in report.per_dataset.values() for scores in by_method.values()
+    )
+    if not scored:
+        print("floornav eval: no labelled image could be scored", file=sys.stderr)
+    return 0 if scored else 1
 
 
 def cmd_bench(args: argparse.Namespace) -> int:

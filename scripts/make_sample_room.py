@@ -42,8 +42,12 @@ def main() -> None:
     cv2.line(image, (140, horizon), (WIDTH, horizon), (70, 70, 80), 3)
     cv2.line(image, (140, 0), (140, horizon), (160, 165, 170), 2)  # wall corner
     # A cardboard box standing on the floor, front face and top.
-    cv2.fillConvexPoly(image, np.array([[400, 250], [520, 250], [520, 340], [400, 340]]), (60, 110, 160))
-    cv2.fillConvexPoly(image, np.array([[400, 250], [520, 250], [500, 232], [415, 232]]), (90, 150, 200))
+    cv2.fillConvexPoly(
+        image, np.array([[400, 250], [520, 250], [520, 340], [400, 340]]), (60, 110, 160)
+    )
+    cv2.fillConvexPoly(
+        image, np.array([[400, 250], [520, 250], [500, 232], [415, 232]]), (90, 150, 200)
+    )
     image = cv2.GaussianBlur(image, (3, 3), 0)
     image = np.clip(image + rng.normal(0, 3, image.shape), 0, 255).astype(np.uint8)
     OUT.parent.mkdir(exist_ok=True)

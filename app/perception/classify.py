@@ -63,9 +63,7 @@ def ssd_classify(
     [True, True, False]
     """
     if features.ndim != 2 or features.shape[0] != training.shape[0]:
-        raise ValueError(
-            f"features {features.shape} and training {training.shape} must agree on n"
-        )
+        raise ValueError(f"features {features.shape} and training {training.shape} must agree on n")
     if not training.any():
         raise ValueError("no training superpixels: the safe zone selected none")
     if not 0.0 < threshold_quantile <= 1.0:

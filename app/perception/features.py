@@ -14,8 +14,6 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-_NJIT = {"cache": True, "nogil": True}
-
 
 @dataclass(frozen=True)
 class SuperpixelFeatures:
@@ -62,7 +60,7 @@ class SuperpixelFeatures:
         ).astype(np.float32)
 
 
-@numba.njit(**_NJIT)  # type: ignore[misc]
+@numba.njit(cache=True, nogil=True)
 def _moments_kernel(
     labels: NDArray[np.int32], image: NDArray[np.float32], n: int
 ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
@@ -119,7 +117,7 @@ def _moments_kernel(
     return sums, bbox
 
 
-@numba.njit(**_NJIT)  # type: ignore[misc]
+@numba.njit(cache=True, nogil=True)
 def _centers_kernel(
     labels: NDArray[np.int32], centroid_xy: NDArray[np.float64], bbox: NDArray[np.int64]
 ) -> NDArray[np.int64]:
@@ -150,7 +148,7 @@ def _centers_kernel(
     return center
 
 
-@numba.njit(**_NJIT)  # type: ignore[misc]
+@numba.njit(cache=True, nogil=True)
 def _run_length(labels: NDArray[np.int32], x: int, y: int, dx: int, dy: int) -> int:
     """Same-label pixels on the line through (x, y) along +-(dx, dy), centre included."""
     height, width = labels.shape
@@ -166,7 +164,7 @@ def _run_length(labels: NDArray[np.int32], x: int, y: int, dx: int, dy: int) -> 
     return count
 
 
-@numba.njit(**_NJIT)  # type: ignore[misc]
+@numba.njit(cache=True, nogil=True)
 def _extents_kernel(labels: NDArray[np.int32], center: NDArray[np.int64]) -> NDArray[np.float64]:
     n = center.shape[0]
     out = np.zeros((n, 3), dtype=np.float64)
@@ -219,7 +217,7 @@ def superpixel_features(
     labels32 = _check_labels(labels)
     if image.shape[:2] != labels32.shape or image.ndim != 3 or image.shape[2] != 3:
         raise ValueError(
-            f"image: expected shape {labels32.shape + (3,)} to match labels, got {image.shape}"
+            f"image: expected shape {(*labels32.shape, 3)} to match labels, got {image.shape}"
         )
     n = int(labels32.max()) + 1
     sums, bbox = _moments_kernel(labels32, np.ascontiguousarray(image, dtype=np.float32), n)
@@ -245,7 +243,7 @@ def superpixel_features(
     )
 
 
-@numba.njit(**_NJIT)  # type: ignore[misc]
+@numba.njit(cache=True, nogil=True)
 def _adjacency_kernel(labels: NDArray[np.int32], n: int) -> NDArray[np.int64]:
     # Boundary-pixel counts between label pairs; n is about 200, so a dense matrix is small.
     counts = np.zeros((n, n), dtype=np.int64)

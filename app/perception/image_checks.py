@@ -48,4 +48,4 @@ def check_mask(
             f"{name}: mask is {mask.shape[1]}x{mask.shape[0]} px but the image is "
             f"{shape[1]}x{shape[0]} px"
         )
-    return np.asarray(mask > 0) if mask.dtype != np.bool_ else mask
+    return np.asarray(mask != 0, dtype=np.bool_)

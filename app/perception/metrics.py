@@ -57,12 +57,9 @@ def floor_scores(predicted: NDArray[np.bool_], truth: NDArray[np.bool_]) -> Floo
     union = n_pred + n_true - tp
     iou = tp / union if union else 1.0
     recall = tp / n_true if n_true else 1.0
-    if n_pred:
-        precision = tp / n_pred
-    else:
-        precision = 1.0 if n_true == 0 else 0.0
+    precision = tp / n_pred if n_pred else 1.0 if n_true == 0 else 0.0
     height = truth.shape[0]
-    band_start = height - int(round(NEAR_BAND_FRAC * height))
+    band_start = height - round(NEAR_BAND_FRAC * height)
     near_nonfloor = ~truth[band_start:]
     n_near = int(np.count_nonzero(near_nonfloor))
     near_false = (

@@ -5,7 +5,6 @@ from __future__ import annotations
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from skimage.segmentation import find_boundaries
 
 FLOOR_TINT_BGR = (60, 200, 60)
 SAFE_ZONE_BGR = (0, 0, 255)
@@ -39,8 +38,16 @@ def draw_overlay(
     floor_px = out[floor_mask].astype(np.float32)
     out[floor_mask] = ((1.0 - alpha) * floor_px + alpha * tint).astype(np.uint8)
     if labels is not None:
-        out[find_boundaries(labels, mode="inner")] = BORDER_BGR
+        out[label_borders(labels)] = BORDER_BGR
     if safe_zone_corners_px is not None:
         corners = np.round(safe_zone_corners_px).astype(np.int32)
         cv2.polylines(out, [corners], isClosed=True, color=SAFE_ZONE_BGR, thickness=2)
     return out
+
+
+def label_borders(labels: NDArray[np.int32]) -> NDArray[np.bool_]:
+    """(H, W) bool, True on pixels whose right or lower neighbour has another label."""
+    border = np.zeros(labels.shape, dtype=bool)
+    border[:, :-1] |= labels[:, :-1] != labels[:, 1:]
+    border[:-1, :] |= labels[:-1, :] != labels[1:, :]
+    return border

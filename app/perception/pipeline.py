@@ -17,7 +17,6 @@ import time
 from collections.abc import Callable
 from dataclasses import dataclass, field
 
-import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -31,7 +30,7 @@ from app.perception.features import (
 )
 from app.perception.image_checks import check_bgr_image
 from app.perception.junctions import JunctionResult, floor_junction_mask
-from app.perception.preprocess import smooth, to_color_space, to_gray
+from app.perception.preprocess import smooth, to_color_space, to_gray, to_lab_u8
 from app.perception.region import flood_fill_floor, grow_region
 from app.perception.safe_zone import Trapezoid, safe_zone_mask, safe_zone_superpixels
 from app.perception.slic import slic_superpixels
@@ -223,7 +222,7 @@ def _segment_flood_fill(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorRes
     watch.lap("safe_zone")
     smoothed = smooth(bgr, sigma_px=seg.config.smoothing_sigma_px)
     watch.lap("smooth")
-    lab_u8 = cv2.cvtColor(smoothed, cv2.COLOR_BGR2Lab)
+    lab_u8 = to_lab_u8(smoothed)
     watch.lap("color")
     seed = seg.zone.seed_xy(bgr.shape[1], bgr.shape[0])
     floor = flood_fill_floor(lab_u8, seed, tolerance=seg.config.flood_fill_tolerance)

@@ -35,14 +35,14 @@ def smooth(image_bgr: NDArray[np.uint8], *, sigma_px: float = 5.0) -> NDArray[np
     if sigma_px == 0:
         return image_bgr
     ksize = 2 * int(np.ceil(3.0 * sigma_px)) + 1
-    out: NDArray[np.uint8] = cv2.GaussianBlur(
-        image_bgr, (ksize, ksize), sigmaX=sigma_px, sigmaY=sigma_px
-    )
-    return out
+    return _u8(cv2.GaussianBlur(image_bgr, (ksize, ksize), sigmaX=sigma_px, sigmaY=sigma_px))
 
 
 def to_color_space(
-    image_bgr: NDArray[np.uint8], *, space: ColorSpace = "lab", out: NDArray[np.float32] | None = None
+    image_bgr: NDArray[np.uint8],
+    *,
+    space: ColorSpace = "lab",
+    out: NDArray[np.float32] | None = None,
 ) -> NDArray[np.float32]:
     """Convert a BGR image to float32 features for SLIC and the classifier.
 
@@ -61,17 +61,26 @@ def to_color_space(
     (H, W, 3) float32
     """
     if space == "lab":
-        lab_u8 = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2Lab)
+        lab_u8 = to_lab_u8(image_bgr)
         result = np.multiply(lab_u8, _LAB_SCALE, out=out, dtype=np.float32)
         result += _LAB_OFFSET
         return result
     if space == "rgb":
-        rgb_u8 = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2RGB)
+        rgb_u8 = _u8(cv2.cvtColor(image_bgr, cv2.COLOR_BGR2RGB))
         return np.multiply(rgb_u8, _RGB_SCALE, out=out, dtype=np.float32)
     raise ValueError(f"unknown colour space {space!r}; expected 'lab' or 'rgb'")
 
 
 def to_gray(image_bgr: NDArray[np.uint8]) -> NDArray[np.uint8]:
     """(H, W, 3) uint8 BGR -> (H, W) uint8 luminance."""
-    gray: NDArray[np.uint8] = cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY)
-    return gray
+    return _u8(cv2.cvtColor(image_bgr, cv2.COLOR_BGR2GRAY))
+
+
+def to_lab_u8(image_bgr: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    """(H, W, 3) uint8 BGR -> OpenCV's 8-bit Lab (L*255/100, a+128, b+128)."""
+    return _u8(cv2.cvtColor(image_bgr, cv2.COLOR_BGR2Lab))
+
+
+def _u8(array: object) -> NDArray[np.uint8]:
+    """Type an OpenCV result as the uint8 array it is (no copy)."""
+    return np.asarray(array, dtype=np.uint8)

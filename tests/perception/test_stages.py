@@ -116,7 +116,7 @@ def test_center_of_concave_superpixel_is_inside_it() -> None:
 def test_features_match_numpy_reference_on_random_labels() -> None:
     rng = np.random.default_rng(1)
     labels = ndimage.zoom(rng.integers(0, 12, (6, 8)), 8, order=0).astype(np.int32)
-    image = rng.normal(50, 10, labels.shape + (3,)).astype(np.float32)
+    image = rng.normal(50, 10, (*labels.shape, 3)).astype(np.float32)
     f = superpixel_features(labels, image)
     n = labels.max() + 1
     count = np.bincount(labels.ravel(), minlength=n)
@@ -124,7 +124,7 @@ def test_features_match_numpy_reference_on_random_labels() -> None:
     for c in range(3):
         mean = np.bincount(labels.ravel(), image[..., c].ravel(), n) / np.maximum(count, 1)
         np.testing.assert_allclose(f.mean_color[:, c], np.where(count > 0, mean, 0), rtol=1e-4)
-    ys, xs = np.indices(labels.shape)
+    _ys, xs = np.indices(labels.shape)
     cx = np.bincount(labels.ravel(), xs.ravel(), n) / np.maximum(count, 1)
     np.testing.assert_allclose(f.centroid_xy[count > 0, 0], cx[count > 0], rtol=1e-5)
 
@@ -219,9 +219,7 @@ def test_flood_fill_stops_at_colour_change() -> None:
 
 
 def test_point_segment_distance_exact() -> None:
-    d = point_segment_distance(
-        np.array([[0.0, 1.0], [5.0, 0.0]]), np.array([[0.0, 0.0, 2.0, 0.0]])
-    )
+    d = point_segment_distance(np.array([[0.0, 1.0], [5.0, 0.0]]), np.array([[0.0, 0.0, 2.0, 0.0]]))
     np.testing.assert_allclose(d[:, 0], [1.0, 3.0])
 
 
