@@ -66,13 +66,13 @@ class SafeZoneConfig(StrictModel):
 class JunctionConfig(StrictModel):
     """Floor-junction masking (Canny, contours, probabilistic Hough lines)."""
 
-    canny_low: Annotated[int, Field(ge=0, le=1000)] = 20
-    canny_high: Annotated[int, Field(ge=1, le=1000)] = 60
-    hough_threshold: Annotated[int, Field(ge=1, le=1000)] = 20
-    min_line_length_frac: Annotated[float, Field(gt=0.0, le=1.0)] = 0.06
-    max_line_gap_px: Annotated[int, Field(ge=0, le=200)] = 4
+    canny_low: Annotated[int, Field(ge=0, le=1000)] = 10
+    canny_high: Annotated[int, Field(ge=1, le=1000)] = 30
+    hough_threshold: Annotated[int, Field(ge=1, le=1000)] = 10
+    min_line_length_frac: Annotated[float, Field(gt=0.0, le=1.0)] = 0.03
+    max_line_gap_px: Annotated[int, Field(ge=0, le=200)] = 8
     vertical_tolerance_rad: Annotated[float, Field(ge=0.0, le=0.8)] = 0.2
-    junction_radius_frac: Annotated[float, Field(gt=0.0, le=0.5)] = 0.03
+    junction_radius_frac: Annotated[float, Field(gt=0.0, le=0.5)] = 0.05
 
     @model_validator(mode="after")
     def _check_canny(self) -> JunctionConfig:
@@ -84,7 +84,7 @@ class JunctionConfig(StrictModel):
 class PerceptionConfig(StrictModel):
     """Floor segmentation from one camera frame (thesis chapters 2-5)."""
 
-    method: FloorMethod = "thesis_junction"
+    method: FloorMethod = "floornav"
     smoothing_sigma_px: Annotated[float, Field(ge=0.0, le=20.0)] = 5.0
     color_space: Literal["lab", "rgb"] = "lab"
     slic_backend: Literal["numba", "skimage"] = "numba"

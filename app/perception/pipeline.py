@@ -9,6 +9,11 @@ Methods (``PerceptionConfig.method``):
     ``thesis`` ANDed with the floor-junction mask (the thesis's final result).
 ``flood_fill``
     The thesis's pixel baseline: flood fill of the smoothed Lab image from the seed.
+``floornav``
+    The same superpixels with what the thesis ignored: a robust self-supervised colour
+    model of the safe zone, position and texture cues weighed by a fitted logistic model,
+    the per-column free-space structure, and one self-training pass
+    (`app.perception.floor_model`).
 """
 
 from __future__ import annotations
@@ -28,6 +33,8 @@ from app.perception.features import (
     adjacency_graph,
     superpixel_features,
 )
+from app.perception.floor_model import floor_model_segment, grid_stats, grid_to_image
+from app.perception.floor_weights import FIRST_PASS_WEIGHTS, SECOND_PASS_WEIGHTS
 from app.perception.image_checks import check_bgr_image
 from app.perception.junctions import JunctionResult, floor_junction_mask
 from app.perception.preprocess import smooth, to_color_space, to_gray, to_lab_u8
@@ -230,8 +237,22 @@ def _segment_flood_fill(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorRes
     return FloorResult(floor, None, None, zone_mask, "flood_fill", watch.finish())
 
 
+def _segment_floornav(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorResult:
+    watch = _Stopwatch()
+    sp = seg.superpixels(bgr, watch)
+    stats = grid_stats(bgr, sp.color, sp.labels, sp.zone_mask)
+    watch.lap("grid")
+    model = floor_model_segment(stats, FIRST_PASS_WEIGHTS, SECOND_PASS_WEIGHTS)
+    watch.lap("floor_model")
+    floor = grid_to_image(model.grid_floor, sp.labels.shape)
+    superpixel_floor = stats.mean_of(model.grid_floor.astype(np.float64)) > 0.5
+    watch.lap("combine")
+    return FloorResult(floor, sp.labels, superpixel_floor, sp.zone_mask, "floornav", watch.finish())
+
+
 METHODS: dict[str, Callable[[FloorSegmenter, NDArray[np.uint8]], FloorResult]] = {
     "thesis": _segment_thesis,
     "thesis_junction": _segment_thesis_junction,
     "flood_fill": _segment_flood_fill,
+    "floornav": _segment_floornav,
 }

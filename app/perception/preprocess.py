@@ -5,6 +5,7 @@ from __future__ import annotations
 from typing import Literal
 
 import cv2
+import numba
 import numpy as np
 from numpy.typing import NDArray
 
@@ -13,7 +14,8 @@ ColorSpace = Literal["lab", "rgb"]
 # cv2's 8-bit Lab stores L*255/100, a+128, b+128; these undo that into CIELAB units.
 _LAB_SCALE = np.array([100.0 / 255.0, 1.0, 1.0], dtype=np.float32)
 _LAB_OFFSET = np.array([0.0, -128.0, -128.0], dtype=np.float32)
-_RGB_SCALE = np.float32(100.0 / 255.0)
+_RGB_SCALE = np.full(3, 100.0 / 255.0, dtype=np.float32)
+_RGB_OFFSET = np.zeros(3, dtype=np.float32)
 
 
 def smooth(image_bgr: NDArray[np.uint8], *, sigma_px: float = 5.0) -> NDArray[np.uint8]:
@@ -61,14 +63,32 @@ def to_color_space(
     (H, W, 3) float32
     """
     if space == "lab":
-        lab_u8 = to_lab_u8(image_bgr)
-        result = np.multiply(lab_u8, _LAB_SCALE, out=out, dtype=np.float32)
-        result += _LAB_OFFSET
-        return result
-    if space == "rgb":
-        rgb_u8 = _u8(cv2.cvtColor(image_bgr, cv2.COLOR_BGR2RGB))
-        return np.multiply(rgb_u8, _RGB_SCALE, out=out, dtype=np.float32)
-    raise ValueError(f"unknown colour space {space!r}; expected 'lab' or 'rgb'")
+        converted = to_lab_u8(image_bgr)
+        scale, offset = _LAB_SCALE, _LAB_OFFSET
+    elif space == "rgb":
+        converted = _u8(cv2.cvtColor(image_bgr, cv2.COLOR_BGR2RGB))
+        scale, offset = _RGB_SCALE, _RGB_OFFSET
+    else:
+        raise ValueError(f"unknown colour space {space!r}; expected 'lab' or 'rgb'")
+    if out is None or out.shape != converted.shape or out.dtype != np.float32:
+        out = np.empty(converted.shape, dtype=np.float32)
+    _scale_channels(converted, scale, offset, out)
+    return out
+
+
+@numba.njit(cache=True, nogil=True)
+def _scale_channels(
+    image: NDArray[np.uint8],
+    scale: NDArray[np.float32],
+    offset: NDArray[np.float32],
+    out: NDArray[np.float32],
+) -> None:
+    # One fused pass (numpy's multiply-then-add makes two and casts on the way).
+    height, width, channels = image.shape
+    for y in range(height):
+        for x in range(width):
+            for c in range(channels):
+                out[y, x, c] = image[y, x, c] * scale[c] + offset[c]
 
 
 def to_gray(image_bgr: NDArray[np.uint8]) -> NDArray[np.uint8]:
