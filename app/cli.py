@@ -92,6 +92,18 @@ def cmd_eval(args: argparse.Namespace) -> int:
     return 0 if scored else 1
 
 
+def cmd_eval_superpixels(args: argparse.Namespace) -> int:
+    from app.evaluation import evaluate_superpixels, format_superpixel_table, stderr_progress
+
+    config = _load(args.config)
+    summary = evaluate_superpixels(args.folders, config.perception, progress=stderr_progress)
+    if args.json:
+        _print_json(summary)
+    else:
+        print(format_superpixel_table(summary))
+    return 0
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from app.bench import format_bench, run_bench
 
@@ -133,6 +145,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     add_config(p)
     p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser(
+        "eval-superpixels",
+        help="boundary recall and undersegmentation error of each SLIC backend",
+    )
+    p.add_argument("folders", type=Path, nargs="+", metavar="DIR")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_config(p)
+    p.set_defaults(func=cmd_eval_superpixels)
 
     p = sub.add_parser("bench", help="time the pipeline's stages against the reference")
     p.add_argument("--json", action="store_true", help="print one JSON object")

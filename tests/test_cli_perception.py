@@ -129,7 +129,7 @@ def test_bench_json_has_the_promised_shape(capsys: pytest.CaptureFixture[str]) -
     for resolution in ("640x480", "320x240"):
         entry = result["resolutions"][resolution]
         assert entry["total_ms"] > 0
-        assert {"smooth", "slic", "features"} <= set(entry["stages_ms"])
+        assert {"smooth", "color", "slic", "floor_model"} <= set(entry["stages_ms"])
         assert all(s["min"] <= s["median"] <= s["max"] for s in entry["stages_ms"].values())
     assert result["reference"]["640x480"]["total_ms"] > 0
     assert result["speedup_vs_reference_640x480"] > 1.0

@@ -255,9 +255,12 @@ def fit_floor_color_model(
     var = ((stats.mean_lab[prototypes] - mean_lab) ** 2 * weights[:, None]).sum(axis=0)
     std_lab = np.maximum(np.sqrt(var), MIN_STD_LAB)
     n_bins = stats.hist_all.shape[0]
-    hist_seed = np.bincount(stats.lab_code[seed_cells], minlength=n_bins).astype(np.float32)
-    hist_seed = cv2.GaussianBlur(
-        hist_seed.reshape(HIST_L_BINS, HIST_AB_BINS, HIST_AB_BINS), (3, 3), 0
+    seed_counts = np.bincount(stats.lab_code[seed_cells], minlength=n_bins).astype(np.float32)
+    # 3x3 smoothing over neighbouring L and a bins (OpenCV sees the b axis as channels)
+    # so that near colours count as floor too.
+    hist_seed = np.asarray(
+        cv2.GaussianBlur(seed_counts.reshape(HIST_L_BINS, HIST_AB_BINS, HIST_AB_BINS), (3, 3), 0),
+        dtype=np.float64,
     ).reshape(-1)
     n_cells = stats.lab_code.size
     ratio = hist_seed / max(int(seed_cells.sum()), 1) / (stats.hist_all / n_cells + 1e-3)
@@ -379,3 +382,22 @@ def grid_to_image(grid_mask: NDArray[np.bool_], shape: tuple[int, int]) -> NDArr
     rows = np.minimum((np.arange(height) + step // 2) // step, grid_mask.shape[0] - 1)
     cols = np.minimum((np.arange(width) + step // 2) // step, grid_mask.shape[1] - 1)
     return np.asarray(grid_mask[rows[:, None], cols[None, :]], dtype=np.bool_)
+
+
+def boundary_to_image(
+    boundary_rows: NDArray[np.int32], shape: tuple[int, int]
+) -> NDArray[np.bool_]:
+    """Floor mask at image size from per-grid-column boundary rows.
+
+    Equal to nearest-neighbour upsampling of the grid mask (`grid_to_image`) but made
+    by one comparison per pixel: pixel (y, x) is floor when its nearest grid row is at or
+    below the boundary of its nearest grid column.
+    """
+    height, width = shape
+    step = grid_step(width)
+    cols = np.minimum((np.arange(width) + step // 2) // step, boundary_rows.shape[0] - 1)
+    grid_height = (height + step - 1) // step
+    boundary = boundary_rows[cols]
+    first_row = np.where(boundary >= grid_height, height, boundary * step - step // 2)
+    rows = np.arange(height, dtype=np.int32)[:, None]
+    return np.asarray(rows >= first_row[None, :], dtype=np.bool_)

@@ -49,6 +49,6 @@ def fit_logistic_regression(
         gradient = x.T @ (sample_weight * (p - targets)) + l2 * total * beta
         hessian = (x * (sample_weight * p * (1.0 - p))[:, None]).T @ x + ridge
         beta -= np.linalg.solve(hessian, gradient)
-    weights = beta / scale
+    weights: NDArray[np.float64] = beta / scale
     weights[-1] = beta[-1] - float((center[:-1] * beta[:-1] / scale[:-1]).sum())
     return weights

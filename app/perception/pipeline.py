@@ -33,7 +33,7 @@ from app.perception.features import (
     adjacency_graph,
     superpixel_features,
 )
-from app.perception.floor_model import floor_model_segment, grid_stats, grid_to_image
+from app.perception.floor_model import boundary_to_image, floor_model_segment, grid_stats
 from app.perception.floor_weights import FIRST_PASS_WEIGHTS, SECOND_PASS_WEIGHTS
 from app.perception.image_checks import check_bgr_image
 from app.perception.junctions import JunctionResult, floor_junction_mask
@@ -102,9 +102,13 @@ class _Superpixels:
     smoothed_bgr: NDArray[np.uint8]
     color: NDArray[np.float32]
     labels: NDArray[np.int32]
+    zone_mask: NDArray[np.bool_]
+
+
+@dataclass(frozen=True)
+class _ThesisInputs:
     features: SuperpixelFeatures
     graph: AdjacencyGraph
-    zone_mask: NDArray[np.bool_]
     in_zone: NDArray[np.bool_]
     seeds: NDArray[np.bool_]
 
@@ -171,15 +175,20 @@ class FloorSegmenter:
             backend=cfg.slic_backend,
         )
         watch.lap("slic")
-        features = superpixel_features(labels, color)
-        graph = adjacency_graph(labels, features.n)
+        return _Superpixels(smoothed, color, labels, zone_mask)
+
+    def thesis_inputs(self, sp: _Superpixels, watch: _Stopwatch) -> _ThesisInputs:
+        """The thesis's 7 features, adjacency graph and safe-zone sampling."""
+        features = superpixel_features(sp.labels, sp.color)
+        graph = adjacency_graph(sp.labels, features.n)
         watch.lap("features")
-        in_zone = safe_zone_superpixels(labels, zone_mask, features.n)
-        seed_x, seed_y = self.zone.seed_xy(bgr.shape[1], bgr.shape[0])
+        in_zone = safe_zone_superpixels(sp.labels, sp.zone_mask, features.n)
+        height, width = sp.labels.shape
+        seed_x, seed_y = self.zone.seed_xy(width, height)
         seeds = np.zeros(features.n, dtype=bool)
-        seeds[labels[seed_y, seed_x]] = True
+        seeds[sp.labels[seed_y, seed_x]] = True
         watch.lap("sampling")
-        return _Superpixels(smoothed, color, labels, features, graph, zone_mask, in_zone, seeds)
+        return _ThesisInputs(features, graph, in_zone, seeds)
 
     def junctions(self, smoothed: NDArray[np.uint8]) -> JunctionResult:
         j = self.config.junction
@@ -197,15 +206,15 @@ class FloorSegmenter:
         )
 
 
-def _thesis_region(sp: _Superpixels) -> NDArray[np.bool_]:
-    classification = ssd_classify(sp.features.thesis_vector(), sp.in_zone)
-    return grow_region(sp.graph, sp.seeds, classification.is_floor)
+def _thesis_region(inputs: _ThesisInputs) -> NDArray[np.bool_]:
+    classification = ssd_classify(inputs.features.thesis_vector(), inputs.in_zone)
+    return grow_region(inputs.graph, inputs.seeds, classification.is_floor)
 
 
 def _segment_thesis(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorResult:
     watch = _Stopwatch()
     sp = seg.superpixels(bgr, watch)
-    region = _thesis_region(sp)
+    region = _thesis_region(seg.thesis_inputs(sp, watch))
     floor = region[sp.labels]
     watch.lap("classify")
     return FloorResult(floor, sp.labels, region, sp.zone_mask, "thesis", watch.finish())
@@ -214,7 +223,7 @@ def _segment_thesis(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorResult:
 def _segment_thesis_junction(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorResult:
     watch = _Stopwatch()
     sp = seg.superpixels(bgr, watch)
-    region = _thesis_region(sp)
+    region = _thesis_region(seg.thesis_inputs(sp, watch))
     watch.lap("classify")
     junction = seg.junctions(sp.smoothed_bgr)
     watch.lap("junctions")
@@ -244,7 +253,7 @@ def _segment_floornav(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorResul
     watch.lap("grid")
     model = floor_model_segment(stats, FIRST_PASS_WEIGHTS, SECOND_PASS_WEIGHTS)
     watch.lap("floor_model")
-    floor = grid_to_image(model.grid_floor, sp.labels.shape)
+    floor = boundary_to_image(model.boundary_rows, sp.labels.shape)
     superpixel_floor = stats.mean_of(model.grid_floor.astype(np.float64)) > 0.5
     watch.lap("combine")
     return FloorResult(floor, sp.labels, superpixel_floor, sp.zone_mask, "floornav", watch.finish())
