@@ -111,6 +111,19 @@ def test_bad_config_stops_a_command(tmp_path: Path, capsys: pytest.CaptureFixtur
     assert "perception.n_superpixels" in capsys.readouterr().err
 
 
+def test_eval_superpixels_compares_backends(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    make_dataset(tmp_path / "toy")
+    assert main(["eval-superpixels", str(tmp_path / "toy"), "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    for backend in ("numba", "skimage"):
+        entry = summary["all"][backend]
+        assert entry["images"] == 3
+        assert 0.0 <= entry["undersegmentation_error"] <= 0.5
+        assert 0.0 <= entry["boundary_recall"] <= 1.0
+
+
 @pytest.mark.slow
 def test_eval_on_the_real_datasets_reports_every_folder(capsys: pytest.CaptureFixture[str]) -> None:
     folders = [str(dataset_dir(name)) for name in FLOOR_DATASETS]
