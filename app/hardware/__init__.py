@@ -1,0 +1,1 @@
+"""Robot hardware behind small interfaces: the Uno's serial protocol and link, cameras."""
