@@ -8,14 +8,14 @@ world (``app.sim``) provides a `MotorPlant` for the simulated Uno to drive.
 from __future__ import annotations
 
 from dataclasses import dataclass
-from enum import Enum
+from enum import StrEnum
 from typing import Protocol
 
 import numpy as np
 from numpy.typing import NDArray
 
 
-class DeviceState(str, Enum):
+class DeviceState(StrEnum):
     """Health of a device as shown to people (status API, logs)."""
 
     DISCONNECTED = "disconnected"
