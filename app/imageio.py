@@ -53,6 +53,12 @@ def read_mask(path: Path, shape: tuple[int, int] | None = None) -> NDArray[np.bo
     return np.asarray(mask > 127)
 
 
+def _umask() -> int:
+    mask = os.umask(0)
+    os.umask(mask)
+    return mask
+
+
 def write_image_atomic(path: Path, image: NDArray[np.uint8]) -> None:
     """Encode by the file's extension and replace ``path`` atomically (no half files)."""
     ok, encoded = cv2.imencode(path.suffix or ".png", image)
@@ -63,6 +69,8 @@ def write_image_atomic(path: Path, image: NDArray[np.uint8]) -> None:
     try:
         with os.fdopen(fd, "wb") as handle:
             handle.write(encoded.tobytes())
+        # mkstemp creates 0600; give the file the permissions a plain open() would.
+        os.chmod(tmp, 0o666 & ~_umask())
         os.replace(tmp, path)
     except BaseException:
         Path(tmp).unlink(missing_ok=True)

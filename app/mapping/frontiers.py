@@ -1,0 +1,429 @@
+"""Frontiers of a classified occupancy grid and the exploration goal among them.
+
+A *frontier cell* is a free cell next to an unknown one (4-neighbours by default, or 8):
+standing there, the camera would see unexplored floor. Frontier cells are clustered into
+8-connected components; components smaller than ``min_cluster_cells`` are dropped (gaps
+between noisy cells, too narrow to matter).
+
+Reachability and path lengths come from a Dijkstra search from the robot's cell over the
+*traversable* cells, with 8-neighbour moves costing 1 or sqrt(2) cells (octile lengths)
+and no corner cutting (a diagonal move needs both cells beside it traversable, so a
+diagonal wall of single cells is not a door). Traversable cells are free cells farther
+than ``inflation_radius_m`` from every occupied cell (the robot's centre must stay that
+far from obstacles), plus the robot's *footprint*: the cells within ``robot_radius_m`` of
+its position (always including its own cell) that are not occupied. The footprint counts
+as known free even when the map has no evidence there, because the camera never sees
+under the robot, and it is not a frontier itself; it also lets the search start when the
+robot stands in an inflated zone.
+
+Each kept cluster gets its *representative cell*: its reachable cell with the shortest
+path from the robot (ties: first in raster order), with that path's length. The **goal**
+is the reachable cluster with the lowest score
+
+    ``score = path_length_m + size_penalty_m * min_cluster_cells / size_cells``
+
+(ties: larger cluster, then lower index), so with the default ``size_penalty_m = 0`` it
+is the nearest reachable frontier; a positive penalty trades distance for larger openings.
+The goal's cell is that cluster's representative cell, and the goal carries the path to it.
+"""
+
+from __future__ import annotations
+
+import heapq
+import math
+from dataclasses import dataclass, field
+
+import cv2
+import numba
+import numpy as np
+from numpy.typing import NDArray
+from scipy import ndimage
+
+from app.mapping.frames import GroundGrid
+from app.mapping.occupancy import FREE, OCCUPIED, UNKNOWN, check_grid, check_xy
+
+REASON_NO_FRONTIER = "no frontier"
+"""`FrontierSearch.reason`: no cluster of at least ``min_cluster_cells`` frontier cells."""
+REASON_NO_REACHABLE = "no reachable frontier"
+"""`FrontierSearch.reason`: clusters exist but none has a traversable path from the robot."""
+REASON_OUTSIDE_MAP = "robot outside the map"
+"""`FrontierSearch.reason`: the robot's position is not on the grid."""
+
+
+@dataclass(frozen=True)
+class FrontierParams:
+    """Parameters of the frontier search.
+
+    Attributes
+    ----------
+    min_cluster_cells : int >= 1, smaller clusters are dropped.
+    inflation_radius_m : float >= 0, least distance of the robot's centre from occupied
+        cells (free cells closer than this are not traversable).
+    robot_radius_m : float >= 0, radius of the footprint treated as known and traversable.
+    size_penalty_m : float >= 0, see the module docstring's score.
+    frontier_adjacency : 4 or 8, which unknown neighbours make a free cell a frontier.
+    """
+
+    min_cluster_cells: int = 4
+    inflation_radius_m: float = 0.15
+    robot_radius_m: float = 0.12
+    size_penalty_m: float = 0.0
+    frontier_adjacency: int = 4
+
+    def __post_init__(self) -> None:
+        if not isinstance(self.min_cluster_cells, int) or self.min_cluster_cells < 1:
+            raise ValueError(
+                f"FrontierParams.min_cluster_cells: must be an int >= 1, got"
+                f" {self.min_cluster_cells!r}"
+            )
+        for name in ("inflation_radius_m", "robot_radius_m", "size_penalty_m"):
+            value = getattr(self, name)
+            if not (isinstance(value, int | float) and 0 <= value < math.inf):
+                raise ValueError(f"FrontierParams.{name}: must be finite and >= 0, got {value!r}")
+        if self.frontier_adjacency not in (4, 8):
+            raise ValueError(
+                "FrontierParams.frontier_adjacency: must be 4 or 8, got"
+                f" {self.frontier_adjacency!r}"
+            )
+
+
+@dataclass(frozen=True, eq=False)
+class FrontierCluster:
+    """One 8-connected cluster of frontier cells.
+
+    Attributes
+    ----------
+    index : int, position in `FrontierSearch.clusters`.
+    cells : (size, 2) int64 (row, col) of its cells, in raster order.
+    centroid_xy : (x, y) world metres, mean of its cells' centres (may lie off the cluster).
+    representative_cell : (row, col) of its nearest reachable cell, or None if unreachable.
+    representative_xy : (x, y) world metres of that cell's centre, or None.
+    path_length_m : float, path length to the representative cell (inf if unreachable).
+    """
+
+    index: int
+    cells: NDArray[np.int64] = field(repr=False)
+    centroid_xy: tuple[float, float]
+    representative_cell: tuple[int, int] | None
+    representative_xy: tuple[float, float] | None
+    path_length_m: float
+
+    @property
+    def size_cells(self) -> int:
+        return int(self.cells.shape[0])
+
+    @property
+    def reachable(self) -> bool:
+        return self.representative_cell is not None
+
+
+@dataclass(frozen=True, eq=False)
+class FrontierGoal:
+    """The chosen exploration goal.
+
+    Attributes
+    ----------
+    cluster_index : int, into `FrontierSearch.clusters`.
+    cell : (row, col) world-grid cell to drive to.
+    xy : (x, y) world metres of its centre.
+    path_length_m : float, octile path length from the robot's cell.
+    score : float, see the module docstring.
+    path_cells : (n, 2) int64 (row, col) from the robot's cell to ``cell``, inclusive.
+    """
+
+    cluster_index: int
+    cell: tuple[int, int]
+    xy: tuple[float, float]
+    path_length_m: float
+    score: float
+    path_cells: NDArray[np.int64] = field(repr=False)
+
+
+@dataclass(frozen=True, eq=False)
+class FrontierSearch:
+    """Result of `find_frontiers`.
+
+    Attributes
+    ----------
+    clusters : tuple of the kept FrontierCluster (at least ``min_cluster_cells`` each).
+    dropped_clusters : int, clusters dropped as too small.
+    goal : FrontierGoal, or None with ``reason``.
+    reason : str, "" when there is a goal, else one of ``REASON_NO_FRONTIER``,
+        ``REASON_NO_REACHABLE``, ``REASON_OUTSIDE_MAP``.
+    distance_m : (rows, cols) float64 path length from the robot's cell, inf where not
+        reachable (all inf when the robot is outside the map).
+    """
+
+    clusters: tuple[FrontierCluster, ...]
+    dropped_clusters: int
+    goal: FrontierGoal | None
+    reason: str
+    distance_m: NDArray[np.float64] = field(repr=False)
+
+
+def check_classes(cells: NDArray[np.int8], grid: GroundGrid) -> None:
+    """Raise ValueError unless ``cells`` is an int8 raster of ``grid``'s shape holding only
+    ``UNKNOWN``, ``FREE`` and ``OCCUPIED``."""
+    if not isinstance(cells, np.ndarray) or cells.dtype != np.int8:
+        kind = cells.dtype if isinstance(cells, np.ndarray) else type(cells).__name__
+        raise ValueError(f"cells: expected an int8 array (OccupancyGrid.classify), got {kind}")
+    if cells.shape != grid.shape:
+        raise ValueError(f"cells: expected shape {grid.shape} (grid), got {cells.shape}")
+    if cells.size and (int(cells.min()) < UNKNOWN or int(cells.max()) > OCCUPIED):
+        raise ValueError(
+            f"cells: values must be UNKNOWN ({UNKNOWN}), FREE ({FREE}) or OCCUPIED ({OCCUPIED})"
+        )
+
+
+def disk_kernel(radius_cells: float) -> NDArray[np.uint8]:
+    """(2k + 1, 2k + 1) uint8, 1 where a cell's centre is within ``radius_cells`` of the
+    middle one's (k = floor(radius_cells)).
+
+    >>> disk_kernel(1.0).tolist()
+    [[0, 1, 0], [1, 1, 1], [0, 1, 0]]
+    """
+    k = math.floor(radius_cells + 1e-9)
+    d = np.arange(-k, k + 1)
+    inside = d[:, None] ** 2 + d[None, :] ** 2 <= radius_cells**2 + 1e-9
+    return inside.astype(np.uint8)
+
+
+def inflate_obstacles(occupied: NDArray[np.bool_], radius_cells: float) -> NDArray[np.bool_]:
+    """(rows, cols) bool: cells whose centre is within ``radius_cells`` of an occupied one's
+    (the occupied cells included)."""
+    if radius_cells < 1:
+        return occupied.copy()
+    dilated = cv2.dilate(occupied.astype(np.uint8), disk_kernel(radius_cells))
+    return np.asarray(dilated, dtype=bool)
+
+
+def footprint_mask(
+    grid: GroundGrid, robot_xy: tuple[float, float], radius_m: float
+) -> NDArray[np.bool_]:
+    """(rows, cols) bool: cells whose centre is within ``radius_m`` of ``robot_xy``, plus
+    the cell containing it (if on the grid)."""
+    x, y = robot_xy
+    mask = np.zeros(grid.shape, dtype=bool)
+    k = math.ceil(radius_m / grid.cell_m) + 1
+    (row, col) = grid.cell_of(np.array([[x, y]]))[0]
+    r0, r1 = max(int(row) - k, 0), min(int(row) + k + 1, grid.rows)
+    c0, c1 = max(int(col) - k, 0), min(int(col) + k + 1, grid.cols)
+    if r0 < r1 and c0 < c1:
+        xs = grid.x_max_m - (np.arange(r0, r1) + 0.5) * grid.cell_m
+        ys = grid.y_max_m - (np.arange(c0, c1) + 0.5) * grid.cell_m
+        near = (xs[:, None] - x) ** 2 + (ys[None, :] - y) ** 2 <= radius_m**2
+        mask[r0:r1, c0:c1] = near
+    if 0 <= row < grid.rows and 0 <= col < grid.cols:
+        mask[row, col] = True
+    return mask
+
+
+def frontier_mask(
+    cells: NDArray[np.int8], *, adjacency: int = 4, exclude: NDArray[np.bool_] | None = None
+) -> NDArray[np.bool_]:
+    """(rows, cols) bool: ``FREE`` cells with an ``UNKNOWN`` 4- (or 8-) neighbour, minus
+    ``exclude``. Cells beyond the raster's edge are not unknown.
+
+    >>> c = np.array([[-1, -1, -1], [0, 0, 0], [0, 0, 1]], np.int8)
+    >>> frontier_mask(c).astype(int).tolist()
+    [[0, 0, 0], [1, 1, 1], [0, 0, 0]]
+    """
+    if adjacency not in (4, 8):
+        raise ValueError(f"adjacency: must be 4 or 8, got {adjacency}")
+    unknown = np.pad(cells == UNKNOWN, 1, constant_values=False)
+    rows, cols = cells.shape
+    near = np.zeros(cells.shape, dtype=bool)
+    for dr in (-1, 0, 1):
+        for dc in (-1, 0, 1):
+            if (dr == 0 and dc == 0) or (adjacency == 4 and dr != 0 and dc != 0):
+                continue
+            near |= unknown[1 + dr : 1 + dr + rows, 1 + dc : 1 + dc + cols]
+    mask: NDArray[np.bool_] = (cells == FREE) & near
+    if exclude is not None:
+        mask &= ~exclude
+    return mask
+
+
+@numba.njit(cache=True, nogil=True)
+def _dijkstra(
+    traversable: NDArray[np.bool_], start: int, cell_m: float
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    rows, cols = traversable.shape
+    dist = np.full(rows * cols, np.inf)
+    parent = np.full(rows * cols, -1, dtype=np.int64)
+    dist[start] = 0.0
+    diagonal = math.sqrt(2.0) * cell_m
+    heap = [(0.0, start)]
+    while len(heap) > 0:
+        d, idx = heapq.heappop(heap)
+        if d > dist[idx]:
+            continue
+        r = idx // cols
+        c = idx - r * cols
+        for dr in range(-1, 2):
+            nr = r + dr
+            if nr < 0 or nr >= rows:
+                continue
+            for dc in range(-1, 2):
+                nc = c + dc
+                if (dr == 0 and dc == 0) or nc < 0 or nc >= cols or not traversable[nr, nc]:
+                    continue
+                if dr != 0 and dc != 0:
+                    if not (traversable[r, nc] and traversable[nr, c]):
+                        continue
+                    nd = d + diagonal
+                else:
+                    nd = d + cell_m
+                n_idx = nr * cols + nc
+                if nd < dist[n_idx]:
+                    dist[n_idx] = nd
+                    parent[n_idx] = idx
+                    heapq.heappush(heap, (nd, n_idx))
+    return dist.reshape(rows, cols), parent
+
+
+def path_distances(
+    traversable: NDArray[np.bool_], start_cell: tuple[int, int], cell_m: float
+) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
+    """Octile shortest paths over traversable cells from ``start_cell`` (always allowed).
+
+    Parameters
+    ----------
+    traversable : (rows, cols) bool
+    start_cell : (row, col) on the raster.
+    cell_m : float > 0, cell size.
+
+    Returns
+    -------
+    distance_m : (rows, cols) float64, inf where unreachable.
+    parent : (rows * cols,) int64 flat index of each cell's predecessor, -1 for the start
+        and unreached cells (see `trace_path`).
+
+    Examples
+    --------
+    >>> d, _ = path_distances(np.array([[True, False, True]]), (0, 0), 1.0)
+    >>> d.tolist()
+    [[0.0, inf, inf]]
+    """
+    if traversable.ndim != 2 or traversable.size == 0:
+        raise ValueError(f"traversable: expected a non-empty 2-D array, got {traversable.shape}")
+    rows, cols = traversable.shape
+    row, col = start_cell
+    if not (0 <= row < rows and 0 <= col < cols):
+        raise ValueError(f"start_cell: {start_cell} is outside the {rows}x{cols} raster")
+    if not (math.isfinite(cell_m) and cell_m > 0):
+        raise ValueError(f"cell_m: must be finite and > 0, got {cell_m}")
+    grid = np.ascontiguousarray(traversable, dtype=np.bool_)
+    dist, parent = _dijkstra(grid, int(row * cols + col), float(cell_m))
+    return dist, parent
+
+
+def trace_path(parent: NDArray[np.int64], cols: int, cell: tuple[int, int]) -> NDArray[np.int64]:
+    """(n, 2) int64 (row, col) from the search's start to ``cell``, inclusive (``cell``
+    alone if it is the start or was not reached)."""
+    chain = [cell[0] * cols + cell[1]]
+    while parent[chain[-1]] >= 0:
+        chain.append(int(parent[chain[-1]]))
+    flat = np.array(chain[::-1], dtype=np.int64)
+    return np.column_stack((flat // cols, flat % cols))
+
+
+def find_frontiers(
+    cells: NDArray[np.int8],
+    grid: GroundGrid,
+    robot_xy_world: tuple[float, float],
+    params: FrontierParams | None = None,
+) -> FrontierSearch:
+    """Frontier clusters of a classified grid and the goal to explore next.
+
+    Parameters
+    ----------
+    cells : (rows, cols) int8 from `OccupancyGrid.classify` (``UNKNOWN`` -1, ``FREE`` 0,
+        ``OCCUPIED`` 1).
+    grid : GroundGrid of ``cells`` (the world frame).
+    robot_xy_world : (x, y) metres, the robot's position (``T_world_robot.x_m, .y_m``).
+    params : FrontierParams
+
+    Returns
+    -------
+    FrontierSearch: the kept clusters, the goal (or None and the reason), and the path
+    lengths from the robot.
+    """
+    params = params if params is not None else FrontierParams()
+    check_grid(grid)
+    check_classes(cells, grid)
+    robot_xy = check_xy(robot_xy_world, "robot_xy_world")
+    cell_m = grid.cell_m
+
+    footprint = footprint_mask(grid, robot_xy, params.robot_radius_m)
+    occupied = cells == OCCUPIED
+    known = cells.copy()
+    known[footprint & ~occupied] = FREE
+    frontier = frontier_mask(known, adjacency=params.frontier_adjacency, exclude=footprint)
+    inflated = inflate_obstacles(occupied, params.inflation_radius_m / cell_m)
+    traversable = ((cells == FREE) & ~inflated) | (footprint & ~occupied)
+
+    (row, col) = (int(v) for v in grid.cell_of(np.array([robot_xy]))[0])
+    on_map = 0 <= row < grid.rows and 0 <= col < grid.cols
+    if on_map:
+        distance, parent = path_distances(traversable, (row, col), cell_m)
+    else:
+        distance = np.full(grid.shape, np.inf)
+        parent = np.full(cells.size, -1, dtype=np.int64)
+
+    labels, n_labels = ndimage.label(frontier, structure=np.ones((3, 3), dtype=bool))
+    flat_idx = np.flatnonzero(labels)
+    flat_lab = labels.ravel()[flat_idx]
+    order = np.argsort(flat_lab, kind="stable")
+    flat_idx, flat_lab = flat_idx[order], flat_lab[order]
+    sizes = np.bincount(flat_lab, minlength=n_labels + 1)
+    starts = np.concatenate(([0], np.cumsum(sizes[1:])))
+    flat_dist = distance.ravel()
+
+    clusters: list[FrontierCluster] = []
+    dropped = 0
+    for label in range(1, n_labels + 1):
+        size = int(sizes[label])
+        if size < params.min_cluster_cells:
+            dropped += 1
+            continue
+        members = flat_idx[starts[label - 1] : starts[label - 1] + size]
+        rc = np.column_stack((members // grid.cols, members % grid.cols)).astype(np.int64)
+        xs = grid.x_max_m - (rc[:, 0] + 0.5) * cell_m
+        ys = grid.y_max_m - (rc[:, 1] + 0.5) * cell_m
+        centroid = (float(xs.mean()), float(ys.mean()))
+        member_dist = flat_dist[members]
+        best = int(np.argmin(member_dist))
+        if math.isfinite(member_dist[best]):
+            rep_cell: tuple[int, int] | None = (int(rc[best, 0]), int(rc[best, 1]))
+            rep_xy: tuple[float, float] | None = (float(xs[best]), float(ys[best]))
+            length = float(member_dist[best])
+        else:
+            rep_cell, rep_xy, length = None, None, math.inf
+        clusters.append(FrontierCluster(len(clusters), rc, centroid, rep_cell, rep_xy, length))
+
+    def result(goal: FrontierGoal | None, reason: str) -> FrontierSearch:
+        return FrontierSearch(tuple(clusters), dropped, goal, reason, distance)
+
+    if not on_map:
+        return result(None, REASON_OUTSIDE_MAP)
+    if not clusters:
+        return result(None, REASON_NO_FRONTIER)
+    reachable = [c for c in clusters if c.representative_cell is not None]
+    if not reachable:
+        return result(None, REASON_NO_REACHABLE)
+
+    def score(c: FrontierCluster) -> float:
+        return c.path_length_m + params.size_penalty_m * params.min_cluster_cells / c.size_cells
+
+    chosen = min(reachable, key=lambda c: (score(c), -c.size_cells, c.index))
+    assert chosen.representative_cell is not None and chosen.representative_xy is not None
+    goal = FrontierGoal(
+        cluster_index=chosen.index,
+        cell=chosen.representative_cell,
+        xy=chosen.representative_xy,
+        path_length_m=chosen.path_length_m,
+        score=score(chosen),
+        path_cells=trace_path(parent, grid.cols, chosen.representative_cell),
+    )
+    return result(goal, "")

@@ -1,0 +1,255 @@
+"""Occupancy grid: ray casting in the patch, world fusion, clamping, decay, bad inputs."""
+
+from __future__ import annotations
+
+import math
+
+import numpy as np
+import pytest
+from numpy.typing import NDArray
+
+from app.mapping.frames import FLOOR, NOT_FLOOR, UNSEEN, GroundGrid, Pose2D
+from app.mapping.grid_bench import bench_grid_update, format_grid_bench
+from app.mapping.occupancy import (
+    FREE,
+    OCCUPIED,
+    PATCH_FREE,
+    PATCH_OCCUPIED,
+    PATCH_UNTOUCHED,
+    UNKNOWN,
+    OccupancyGrid,
+    OccupancyParams,
+    build_polar_table,
+    cast_rays,
+    decay_factor,
+    fuse_patch_labels,
+)
+
+# A 1 m x 1 m patch of 1 cm cells in front of a camera at the robot's origin: row i
+# covers x in [1 - (i + 1) / 100, 1 - i / 100).
+PATCH = GroundGrid.covering(x_min_m=0.0, x_max_m=1.0, y_min_m=-0.5, y_max_m=0.5, cell_m=0.01)
+CAMERA = (0.0, 0.0)
+# World: x -1..2, y -1..1 in 5 cm cells; row r covers x in [2 - (r + 1) / 20, 2 - r / 20).
+WORLD = GroundGrid.covering(x_min_m=-1.0, x_max_m=2.0, y_min_m=-1.0, y_max_m=1.0, cell_m=0.05)
+NO_DECAY = OccupancyParams(obstacle_band_m=0.025, half_life_s=math.inf)
+
+
+def wall_patch(wall_x_m: float = 0.6) -> NDArray[np.uint8]:
+    """Floor up to x = wall_x_m, not floor (a wall and its smear) from there on."""
+    x, _ = PATCH.cell_centers()
+    return np.where(x < wall_x_m, FLOOR, NOT_FLOOR).astype(np.uint8)
+
+
+def test_wall_line_free_before_occupied_band_at_nothing_behind() -> None:
+    labels = cast_rays(wall_patch(), build_polar_table(PATCH, CAMERA), obstacle_band_m=0.025)
+    # Rows 40..99 are floor (x < 0.6), row 39 is the first wall row (x in [0.60, 0.61)).
+    assert (labels[40:] == PATCH_FREE).all()
+    assert (labels[38:40] == PATCH_OCCUPIED).all()
+    assert np.isin(labels[37], [PATCH_OCCUPIED, PATCH_UNTOUCHED]).all()  # band edge, oblique
+    assert (labels[:37] == PATCH_UNTOUCHED).all()
+
+
+def test_wall_line_in_the_world_is_cell_exact() -> None:
+    grid = OccupancyGrid(WORLD, NO_DECAY)
+    summary = grid.update(wall_patch(), PATCH, Pose2D(), CAMERA, 0.0)
+    expected = np.zeros(WORLD.shape, np.float32)
+    # Patch y in [-0.5, 0.5) -> world cols 10..29; x in [0.60, 0.65) -> row 27 (holds the
+    # band and 2 cm of smear: occupied wins); x in [0, 0.6) -> rows 28..39.
+    expected[27, 10:30] = np.float32(0.85)
+    expected[28:40, 10:30] = np.float32(-0.4)
+    np.testing.assert_array_equal(grid.log_odds, expected)
+    assert (summary.world_free, summary.world_occupied) == (12 * 20, 20)
+    assert summary.patch_free == 60 * 100 and summary.patch_occupied >= 200
+    classes = grid.classify()
+    assert classes.dtype == np.int8
+    assert (classes[27, 10:30] == OCCUPIED).all() and (classes[28:40, 10:30] == UNKNOWN).all()
+    grid.update(wall_patch(), PATCH, Pose2D(), CAMERA, 0.0)
+    assert (grid.classify()[28:40, 10:30] == FREE).all()  # two floor sightings make free
+
+
+def test_unseen_never_updates_and_does_not_stop_rays() -> None:
+    grid = OccupancyGrid(WORLD, NO_DECAY)
+    unseen = np.full(PATCH.shape, UNSEEN, np.uint8)
+    summary = grid.update(unseen, PATCH, Pose2D(0.3, -0.2, 0.5), CAMERA, 0.0)
+    assert not grid.log_odds.any()
+    assert (summary.patch_free, summary.world_free, summary.world_occupied) == (0, 0, 0)
+
+    patch = wall_patch()
+    patch[60:70] = UNSEEN  # a blind strip across the floor at x in [0.30, 0.40)
+    patch[:, 50:] = UNSEEN  # and the whole right half (y < 0)
+    labels = cast_rays(patch, build_polar_table(PATCH, CAMERA), obstacle_band_m=0.025)
+    assert (labels[patch == UNSEEN] == PATCH_UNTOUCHED).all()
+    assert (labels[70:, :50] == PATCH_FREE).all() and (labels[40:60, :50] == PATCH_FREE).all()
+    assert (labels[38:40, :50] == PATCH_OCCUPIED).all()
+    grid.update(patch, PATCH, Pose2D(), CAMERA, 0.0)
+    assert not grid.log_odds[:, 20:].any()  # world y < 0
+    assert not grid.log_odds[32:34].any()  # world x in [0.30, 0.40)
+    assert (grid.log_odds[34:40, 10:20] < 0).all() and (grid.log_odds[28:32, 10:20] < 0).all()
+
+
+def test_fov_wedge_is_respected() -> None:
+    x, y = PATCH.cell_centers()
+    wedge = np.abs(np.arctan2(y - CAMERA[1], x - CAMERA[0])) < math.radians(30)
+    patch = np.where(wedge, FLOOR, UNSEEN).astype(np.uint8)
+    labels = cast_rays(patch, build_polar_table(PATCH, CAMERA))
+    np.testing.assert_array_equal(labels == PATCH_FREE, wedge)
+    assert not (labels == PATCH_OCCUPIED).any()
+
+    grid = OccupancyGrid(WORLD, NO_DECAY)
+    pose = Pose2D(0.2, 0.1, 0.3)
+    grid.update(patch, PATCH, pose, CAMERA, 0.0)
+    hit = WORLD.cell_of(pose.apply(np.column_stack((x[wedge], y[wedge]))))
+    expected = np.zeros(WORLD.shape, bool)
+    expected[hit[:, 0], hit[:, 1]] = True
+    np.testing.assert_array_equal(grid.log_odds != 0, expected)
+    assert (grid.log_odds[expected] == np.float32(-0.4)).all()
+
+
+def test_obstacle_without_floor_before_it_is_not_mapped() -> None:
+    patch = wall_patch(wall_x_m=2.0)  # all floor ...
+    patch[80:] = NOT_FLOOR  # ... but the first 20 cm in front of the camera are not
+    labels = cast_rays(patch, build_polar_table(PATCH, CAMERA))
+    # Rays from the camera meet not-floor first: the obstacle's foot is out of view, so
+    # neither it nor anything behind it is mapped.
+    assert (labels == PATCH_UNTOUCHED).all()
+
+
+def test_pose_transform_is_cell_exact() -> None:
+    world = GroundGrid.covering(x_min_m=-5, x_max_m=5, y_min_m=-5, y_max_m=5, cell_m=0.05)
+    patch_grid = GroundGrid.covering(
+        x_min_m=0.0, x_max_m=0.5, y_min_m=-0.25, y_max_m=0.25, cell_m=0.05
+    )
+    rng = np.random.default_rng(1)
+    labels = rng.integers(0, 3, patch_grid.shape).astype(np.uint8)
+    log_odds = np.zeros(world.shape, np.float32)
+    pose = Pose2D(1.0, 2.0, math.pi / 2)
+    fuse_patch_labels(log_odds, world, labels, patch_grid, pose, OccupancyParams())
+    # Patch cell (i, j) has its centre at robot (0.475 - 0.05 i, 0.225 - 0.05 j), hence at
+    # world (0.775 + 0.05 j, 2.475 - 0.05 i): world cell (84 - j, 50 + i).
+    values = np.array([0.0, -0.4, 0.85], np.float32)[labels]
+    expected = np.zeros(world.shape, np.float32)
+    expected[75:85, 50:60] = np.rot90(values)
+    np.testing.assert_array_equal(log_odds, expected)
+    assert expected[84, 50] == values[0, 0] and expected[75, 59] == values[9, 9]
+
+    # The same through update(): an all-floor patch seen from its near edge.
+    grid = OccupancyGrid(world, NO_DECAY)
+    grid.update(np.full(patch_grid.shape, FLOOR, np.uint8), patch_grid, pose, (0.0, 0.0), 0.0)
+    expected = np.zeros(world.shape, np.float32)
+    expected[75:85, 50:60] = np.float32(-0.4)
+    np.testing.assert_array_equal(grid.log_odds, expected)
+
+
+def test_many_patch_cells_on_one_world_cell_give_one_update_occupied_wins() -> None:
+    world = GroundGrid.covering(x_min_m=0, x_max_m=0.1, y_min_m=0, y_max_m=0.1, cell_m=0.05)
+    patch_grid = GroundGrid.covering(x_min_m=0, x_max_m=0.1, y_min_m=0, y_max_m=0.1, cell_m=0.01)
+    labels = np.full(patch_grid.shape, PATCH_FREE, np.uint8)
+    labels[0, 0] = PATCH_OCCUPIED  # 1 of the 25 cells of world cell (0, 0)
+    labels[5:, 5:] = PATCH_UNTOUCHED  # world cell (1, 1) gets nothing
+    log_odds = np.zeros(world.shape, np.float32)
+    counts = fuse_patch_labels(log_odds, world, labels, patch_grid, Pose2D(), OccupancyParams())
+    np.testing.assert_array_equal(log_odds, np.array([[0.85, -0.4], [-0.4, 0.0]], np.float32))
+    assert counts == (2, 1)
+
+
+def test_log_odds_are_clamped() -> None:
+    grid = OccupancyGrid(WORLD, NO_DECAY)
+    for _ in range(12):
+        grid.update(wall_patch(), PATCH, Pose2D(), CAMERA, 0.0)
+    assert grid.log_odds.max() == np.float32(3.5)
+    assert grid.log_odds.min() == np.float32(-2.0)
+    assert (grid.log_odds[28:40, 10:30] == np.float32(-2.0)).all()
+    probabilities = grid.probabilities()
+    assert probabilities.dtype == np.float32
+    assert probabilities[0, 0] == 0.5 and probabilities[27, 10] > 0.97
+
+
+def test_decay_halves_evidence_after_one_half_life() -> None:
+    params = OccupancyParams(half_life_s=30.0, decay_interval_s=0.2)
+    grid = OccupancyGrid(WORLD, params)
+    assert grid.update(wall_patch(), PATCH, Pose2D(), CAMERA, 100.0).decayed is False
+    before = grid.log_odds.copy()
+    # Within the lazy interval: no global multiply yet.
+    unseen = np.full(PATCH.shape, UNSEEN, np.uint8)
+    assert grid.update(unseen, PATCH, Pose2D(), CAMERA, 100.1).decayed is False
+    np.testing.assert_array_equal(grid.log_odds, before)
+    # One half-life after the clock started: exactly half.
+    assert grid.update(unseen, PATCH, Pose2D(), CAMERA, 130.0).decayed is True
+    np.testing.assert_array_equal(grid.log_odds, before / 2)
+    assert grid.decay_to(190.0) is True  # two more half-lives
+    np.testing.assert_array_equal(grid.log_odds, before / 8)
+    assert decay_factor(15.0, 30.0) == pytest.approx(math.sqrt(0.5))
+    with pytest.raises(ValueError, match="backwards"):
+        grid.decay_to(100.0)
+    grid.reset()
+    assert not grid.log_odds.any()
+    grid.decay_to(5.0)  # the clock restarts after reset()
+
+
+def test_footprint_is_cleared_when_enabled() -> None:
+    grid = OccupancyGrid(WORLD, OccupancyParams(footprint_free_radius_m=0.06))
+    unseen = np.full(PATCH.shape, UNSEEN, np.uint8)
+    summary = grid.update(unseen, PATCH, Pose2D(0.0, 0.0, 1.0), CAMERA, 0.0)
+    # World cells with centres within 6 cm of the origin: (+-0.025, +-0.025) only.
+    assert summary.world_free == 4
+    cleared = np.argwhere(grid.log_odds < 0).tolist()
+    assert cleared == [[39, 19], [39, 20], [40, 19], [40, 20]]
+
+
+def test_polar_table_covers_a_camera_patch_in_range_order() -> None:
+    patch_grid = GroundGrid.covering(
+        x_min_m=0.1, x_max_m=3.0, y_min_m=-1.5, y_max_m=1.5, cell_m=0.01
+    )
+    table = build_polar_table(patch_grid, (0.1, 0.0))
+    covered = np.zeros(patch_grid.rows * patch_grid.cols, bool)
+    covered[table.cells] = True
+    assert covered.all()
+    for k in range(0, table.n_rays, 97):
+        ranges = table.range_m[table.offsets[k] : table.offsets[k + 1]]
+        assert (np.diff(ranges) >= 0).all()
+
+
+def test_bad_inputs_raise_clear_value_errors() -> None:
+    grid = OccupancyGrid(WORLD)
+    good = wall_patch()
+    with pytest.raises(ValueError, match="shape"):
+        grid.update(good[:, :-1], PATCH, Pose2D(), CAMERA, 0.0)
+    with pytest.raises(ValueError, match="uint8"):
+        grid.update(good.astype(np.float32), PATCH, Pose2D(), CAMERA, 0.0)
+    bad_values = good.copy()
+    bad_values[0, 0] = 7
+    with pytest.raises(ValueError, match="1 cells are not FLOOR"):
+        grid.update(bad_values, PATCH, Pose2D(), CAMERA, 0.0)
+    with pytest.raises(ValueError, match="T_world_robot"):
+        grid.update(good, PATCH, Pose2D(float("nan"), 0.0, 0.0), CAMERA, 0.0)
+    with pytest.raises(ValueError, match="camera_xy_robot"):
+        grid.update(good, PATCH, Pose2D(), (0.0, float("inf")), 0.0)
+    with pytest.raises(ValueError, match="now_s"):
+        grid.update(good, PATCH, Pose2D(), CAMERA, float("nan"))
+    negative = GroundGrid(1.0, 0.5, -0.01, 100, 100)
+    with pytest.raises(ValueError, match=r"patch_grid: cell size must be finite and > 0"):
+        grid.update(good, negative, Pose2D(), CAMERA, 0.0)
+    with pytest.raises(ValueError, match=r"world_grid: cell size"):
+        OccupancyGrid(GroundGrid(1.0, 1.0, -0.05, 10, 10))
+    with pytest.raises(ValueError, match="larger than the world"):
+        coarse = GroundGrid.covering(x_min_m=0, x_max_m=1, y_min_m=-0.5, y_max_m=0.5, cell_m=0.1)
+        grid.update(np.full(coarse.shape, FLOOR, np.uint8), coarse, Pose2D(), CAMERA, 0.0)
+    with pytest.raises(ValueError, match="log_odds_free"):
+        OccupancyParams(log_odds_free=0.4)
+    with pytest.raises(ValueError, match="half_life_s"):
+        OccupancyParams(half_life_s=0.0)
+    with pytest.raises(ValueError, match="obstacle_band_m"):
+        OccupancyParams(obstacle_band_m=float("nan"))
+    with pytest.raises(ValueError, match="size_m"):
+        OccupancyGrid.square(20.0, -0.05)
+    assert not grid.log_odds.any()  # nothing was half-applied
+
+
+@pytest.mark.slow
+def test_grid_bench_smoke() -> None:
+    result = bench_grid_update(1)
+    assert result["updates"] == 12
+    ms = {key: result[key] for key in ("median", "min", "max", "open_floor_median")}
+    assert all(isinstance(v, float) and v > 0 for v in ms.values())
+    assert float(ms["min"]) <= float(ms["median"]) <= float(ms["max"])
+    assert "occupancy grid update" in format_grid_bench(result)
