@@ -105,14 +105,19 @@ def cmd_eval_superpixels(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
-    from app.bench import format_bench, run_bench
+    from app.benchmarks.grid import bench_grid_update, format_grid_bench
+    from app.benchmarks.perception import format_bench, run_bench
 
     config = _load(args.config)
     result = run_bench(config.perception, args.datasets, repeats=args.repeats)
+    grid = bench_grid_update(max(1, args.repeats))
+    result["grid_update"] = grid
     if args.json:
         _print_json(result)
     else:
         print(format_bench(result))
+        print()
+        print(format_grid_bench(grid))
     return 0
 
 

@@ -29,7 +29,7 @@ One update takes a ground patch from inverse perspective mapping (a robot-frame
    noisy pixel into a 5 cm obstacle and a hole in the free space (any-not-floor); and the
    occupied band stays a few centimetres thick instead of a whole world cell of smear.
    It is also fast enough: a whole update of a 290 x 300-cell patch takes under 1 ms on
-   one core (`app.mapping.grid_bench`).
+   one core (`app.benchmarks.grid`).
 
 2. **Transform into the world** (`fuse_patch_labels`). The centre of every free or
    occupied patch cell is moved by ``T_world_robot`` and falls into the nearest world cell

@@ -9,7 +9,7 @@ import pytest
 from numpy.typing import NDArray
 
 from app.mapping.frames import FLOOR, NOT_FLOOR, UNSEEN, GroundGrid, Pose2D
-from app.mapping.grid_bench import bench_grid_update, format_grid_bench
+from app.benchmarks.grid import bench_grid_update, format_grid_bench
 from app.mapping.occupancy import (
     FREE,
     OCCUPIED,

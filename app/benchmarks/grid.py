@@ -198,7 +198,7 @@ def format_grid_bench(result: dict[str, float | int | str]) -> str:
     )
 
 
-def main(argv: list[str]) -> int:
+def main(argv: list[str]) -> int:  # python -m app.benchmarks.grid [REPEATS]
     repeats = int(argv[0]) if argv else 20
     if hasattr(os, "sched_setaffinity"):
         os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
