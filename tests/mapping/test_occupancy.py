@@ -8,8 +8,8 @@ import numpy as np
 import pytest
 from numpy.typing import NDArray
 
-from app.mapping.frames import FLOOR, NOT_FLOOR, UNSEEN, GroundGrid, Pose2D
 from app.benchmarks.grid import bench_grid_update, format_grid_bench
+from app.mapping.frames import FLOOR, NOT_FLOOR, UNSEEN, GroundGrid, Pose2D
 from app.mapping.occupancy import (
     FREE,
     OCCUPIED,
