@@ -96,6 +96,33 @@ class PerceptionConfig(StrictModel):
     junction: JunctionConfig = JunctionConfig()
 
 
+class SerialConfig(StrictModel):
+    """The link to the Uno (``docs/protocol.md``); numbers map to
+    `app.hardware.serial_link.UnoLinkConfig`, whose docstrings give the reasons."""
+
+    backend: Literal["sim", "simavr", "port"] = "sim"
+    """``sim``: the pure-Python simulated Uno on a pty (default, fast); ``simavr``: the
+    real firmware run in simavr by ``firmware/sim/harness``; ``port``: a real Uno."""
+    port: str = "/dev/serial/by-id/usb-Arduino__www.arduino.cc__0043-if00"
+    """Used with ``backend = "port"``; prefer a stable /dev/serial/by-id/ path."""
+    handshake_timeout_s: Annotated[float, Field(gt=0.0, le=30.0)] = 3.0
+    ack_timeout_ms: Annotated[float, Field(gt=0.0, le=1000.0)] = 50.0
+    heartbeat_period_ms: Annotated[float, Field(ge=20.0, le=200.0)] = 100.0
+    """Must stay well below the firmware's 250 ms deadman."""
+    telemetry_period_ms: Annotated[int, Field(ge=20, le=1000)] = 50
+    silence_timeout_ms: Annotated[float, Field(ge=50.0, le=5000.0)] = 200.0
+    backoff_initial_s: Annotated[float, Field(gt=0.0, le=10.0)] = 0.1
+    backoff_max_s: Annotated[float, Field(gt=0.0, le=60.0)] = 2.0
+
+    @model_validator(mode="after")
+    def _check_timing(self) -> SerialConfig:
+        if self.silence_timeout_ms <= self.telemetry_period_ms:
+            raise ValueError("silence_timeout_ms must exceed telemetry_period_ms")
+        if self.backoff_max_s < self.backoff_initial_s:
+            raise ValueError("backoff_max_s must not be below backoff_initial_s")
+        return self
+
+
 _toml_path: contextvars.ContextVar[Path | None] = contextvars.ContextVar(
     "floornav_config_path", default=None
 )
@@ -113,6 +140,7 @@ class FloornavConfig(BaseSettings):
     )
 
     perception: PerceptionConfig = PerceptionConfig()
+    serial: SerialConfig = SerialConfig()
 
     @classmethod
     def settings_customise_sources(
