@@ -9,46 +9,46 @@ import numpy as np
 
 FIRST_PASS_WEIGHTS = np.array(
     [
-        -0.005904,  # d_prototype
-        0.094699,  # d_mean_sd_over_3
-        0.187673,  # dL_over_10
-        -0.293449,  # d_ab_over_5
-        1.195364,  # hist_ratio
-        2.058140,  # y_center
-        2.191835,  # y_top
-        1.870294,  # y_bottom
-        -1.038499,  # abs_x_center_minus_half
-        -0.105538,  # texture_over_20
-        0.330442,  # texture_rel_log
-        -0.733975,  # gray_std_over_20
-        0.114933,  # touches_bottom
-        -1.502287,  # area_pct
-        -0.034824,  # dL_over_10_sq
-        -0.208251,  # y_center_times_d_mean
-        0.874142,  # safe_zone_frac
-        -2.758406,  # bias
+        -0.009136,  # d_prototype
+        0.105781,  # d_mean_sd_over_3
+        0.188045,  # dL_over_10
+        -0.293371,  # d_ab_over_5
+        1.179177,  # hist_ratio
+        2.059815,  # y_center
+        2.192484,  # y_top
+        1.863526,  # y_bottom
+        -1.039236,  # abs_x_center_minus_half
+        -0.103518,  # texture_over_20
+        0.332535,  # texture_rel_log
+        -0.756463,  # gray_std_over_20
+        0.123102,  # touches_bottom
+        -1.497227,  # area_pct
+        -0.034081,  # dL_over_10_sq
+        -0.212255,  # y_center_times_d_mean
+        0.892226,  # safe_zone_frac
+        -2.766288,  # bias
     ]
 )
 
 SECOND_PASS_WEIGHTS = np.array(
     [
-        0.061352,  # d_prototype
-        0.055426,  # d_mean_sd_over_3
-        0.209505,  # dL_over_10
-        -0.280042,  # d_ab_over_5
-        1.325285,  # hist_ratio
-        2.106247,  # y_center
-        2.264578,  # y_top
-        1.885704,  # y_bottom
-        -1.112477,  # abs_x_center_minus_half
-        -0.105392,  # texture_over_20
-        0.380790,  # texture_rel_log
-        -0.748612,  # gray_std_over_20
-        0.067885,  # touches_bottom
-        -1.470344,  # area_pct
-        -0.014356,  # dL_over_10_sq
-        -0.446157,  # y_center_times_d_mean
-        1.079382,  # safe_zone_frac
-        -2.868897,  # bias
+        0.058076,  # d_prototype
+        0.049142,  # d_mean_sd_over_3
+        0.209101,  # dL_over_10
+        -0.278946,  # d_ab_over_5
+        1.313317,  # hist_ratio
+        2.104622,  # y_center
+        2.266222,  # y_top
+        1.867953,  # y_bottom
+        -1.121891,  # abs_x_center_minus_half
+        -0.103004,  # texture_over_20
+        0.370004,  # texture_rel_log
+        -0.760291,  # gray_std_over_20
+        0.069879,  # touches_bottom
+        -1.482660,  # area_pct
+        -0.013825,  # dL_over_10_sq
+        -0.434729,  # y_center_times_d_mean
+        1.089024,  # safe_zone_frac
+        -2.852577,  # bias
     ]
 )
