@@ -10,6 +10,7 @@ from collections.abc import Sequence
 from pathlib import Path
 
 from app.config import DEFAULT_CONFIG_PATH, ConfigError, FloornavConfig, load_config
+from app.mapping.calibrate_cli import add_calibrate_parser
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATASETS_DIR = PROJECT_ROOT.parent / "shared" / "datasets"
@@ -159,6 +160,8 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--json", action="store_true", help="print one JSON object")
     add_config(p)
     p.set_defaults(func=cmd_eval_superpixels)
+
+    add_calibrate_parser(sub)
 
     p = sub.add_parser("bench", help="time the pipeline's stages against the reference")
     p.add_argument("--json", action="store_true", help="print one JSON object")
