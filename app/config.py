@@ -96,6 +96,51 @@ class PerceptionConfig(StrictModel):
     junction: JunctionConfig = JunctionConfig()
 
 
+class CameraConfig(StrictModel):
+    """The camera: expected frame size and its calibration file."""
+
+    width_px: Annotated[int, Field(ge=64, le=4096)] = 640
+    height_px: Annotated[int, Field(ge=48, le=4096)] = 480
+    intrinsics_file: str = ""
+    """``floornav calibrate intrinsics --out`` output (JSON, or OpenCV XML/YAML); empty:
+    no lens model (the floor homography then applies to raw pixels)."""
+    x_m: Annotated[float, Field(ge=-1.0, le=1.0)] = 0.10
+    """Camera position in the robot frame (x forward); rays of the map start here."""
+    y_m: Annotated[float, Field(ge=-1.0, le=1.0)] = 0.0
+
+
+class MappingConfig(StrictModel):
+    """Inverse perspective mapping, the occupancy grid and frontier search."""
+
+    floor_calibration_file: str = "calibration/floor.json"
+    """``floornav calibrate floor --out`` output: ``H_ground_from_image``."""
+    birdseye_x_min_m: Annotated[float, Field(ge=0.0, le=2.0)] = 0.10
+    birdseye_x_max_m: Annotated[float, Field(gt=0.0, le=10.0)] = 3.0
+    birdseye_half_width_m: Annotated[float, Field(gt=0.0, le=5.0)] = 1.5
+    birdseye_cell_m: Annotated[float, Field(ge=0.002, le=0.1)] = 0.01
+    max_range_m: Annotated[float, Field(gt=0.0, le=20.0)] = 3.0
+    """Floor farther than this is not trusted (pixels shrink with range)."""
+    grid_size_m: Annotated[float, Field(ge=2.0, le=200.0)] = 20.0
+    grid_cell_m: Annotated[float, Field(ge=0.01, le=0.5)] = 0.05
+    log_odds_free: Annotated[float, Field(ge=-5.0, lt=0.0)] = -0.4
+    log_odds_occupied: Annotated[float, Field(gt=0.0, le=5.0)] = 0.85
+    log_odds_min: Annotated[float, Field(ge=-20.0, lt=0.0)] = -2.0
+    log_odds_max: Annotated[float, Field(gt=0.0, le=20.0)] = 3.5
+    obstacle_band_m: Annotated[float, Field(gt=0.0, le=0.5)] = 0.03
+    evidence_half_life_s: Annotated[float, Field(gt=0.0, le=86400.0)] = 30.0
+    frontier_min_cells: Annotated[int, Field(ge=1, le=10000)] = 4
+    robot_radius_m: Annotated[float, Field(gt=0.0, le=2.0)] = 0.12
+    inflation_radius_m: Annotated[float, Field(ge=0.0, le=2.0)] = 0.15
+
+    @model_validator(mode="after")
+    def _check_extent(self) -> MappingConfig:
+        if self.birdseye_x_min_m >= self.birdseye_x_max_m:
+            raise ValueError("birdseye_x_min_m must be smaller than birdseye_x_max_m")
+        if self.birdseye_cell_m > self.grid_cell_m:
+            raise ValueError("birdseye_cell_m must not exceed grid_cell_m")
+        return self
+
+
 class SerialConfig(StrictModel):
     """The link to the Uno (``docs/protocol.md``); numbers map to
     `app.hardware.serial_link.UnoLinkConfig`, whose docstrings give the reasons."""
@@ -140,6 +185,8 @@ class FloornavConfig(BaseSettings):
     )
 
     perception: PerceptionConfig = PerceptionConfig()
+    camera: CameraConfig = CameraConfig()
+    mapping: MappingConfig = MappingConfig()
     serial: SerialConfig = SerialConfig()
 
     @classmethod
