@@ -105,6 +105,25 @@ def cmd_eval_superpixels(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_uno_check(args: argparse.Namespace) -> int:
+    import asyncio
+
+    from app.hardware.uno_check import run_uno_check
+
+    config = _load(args.config)
+    report = asyncio.run(
+        run_uno_check(
+            config.serial, pings=args.pings, drive_pwm=args.drive_pwm, drive_s=args.drive_s
+        )
+    )
+    if args.json:
+        _print_json(report)
+    else:
+        for key, value in report.items():
+            print(f"{key}: {value}")
+    return 0 if report.get("connected") else 1
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
     from app.benchmarks.grid import bench_grid_update, format_grid_bench
     from app.benchmarks.perception import format_bench, run_bench
@@ -162,6 +181,16 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_eval_superpixels)
 
     add_calibrate_parser(sub)
+
+    p = sub.add_parser(
+        "uno-check", help="connect to the configured Uno, handshake, measure round trips"
+    )
+    p.add_argument("--pings", type=int, default=50, help="PING round trips to time")
+    p.add_argument("--drive-pwm", type=int, default=0, help="drive both wheels at this PWM")
+    p.add_argument("--drive-s", type=float, default=0.0, help="... for this many seconds")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_config(p)
+    p.set_defaults(func=cmd_uno_check)
 
     p = sub.add_parser("bench", help="time the pipeline's stages against the reference")
     p.add_argument("--json", action="store_true", help="print one JSON object")
