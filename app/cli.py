@@ -3,32 +3,16 @@
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import sys
 from collections.abc import Sequence
 from pathlib import Path
 
 from app.config import DEFAULT_CONFIG_PATH, ConfigError, FloornavConfig, load_config
+from app.fileio import print_json
 from app.mapping.calibrate_cli import add_calibrate_parser
 
 PROJECT_ROOT = Path(__file__).resolve().parents[1]
 DEFAULT_DATASETS_DIR = PROJECT_ROOT.parent / "shared" / "datasets"
-
-
-def _json_safe(value: object) -> object:
-    """Replace NaN/inf (not valid JSON) with null, recursively."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    return value
-
-
-def _print_json(value: object) -> None:
-    print(json.dumps(_json_safe(value), indent=2, allow_nan=False))
 
 
 def _load(path: Path) -> FloornavConfig:
@@ -82,7 +66,7 @@ def cmd_eval(args: argparse.Namespace) -> int:
     report = evaluate(args.folders, methods, config.perception, progress=stderr_progress)
     summary = report.summary(config.perception.method)
     if args.json:
-        _print_json(summary)
+        print_json(summary)
     else:
         print(format_table(summary))
     scored = any(
@@ -99,7 +83,7 @@ def cmd_eval_superpixels(args: argparse.Namespace) -> int:
     config = _load(args.config)
     summary = evaluate_superpixels(args.folders, config.perception, progress=stderr_progress)
     if args.json:
-        _print_json(summary)
+        print_json(summary)
     else:
         print(format_superpixel_table(summary))
     return 0
@@ -117,7 +101,7 @@ def cmd_uno_check(args: argparse.Namespace) -> int:
         )
     )
     if args.json:
-        _print_json(report)
+        print_json(report)
     else:
         for key, value in report.items():
             print(f"{key}: {value}")
@@ -133,7 +117,7 @@ def cmd_bench(args: argparse.Namespace) -> int:
     grid = bench_grid_update(max(1, args.repeats))
     result["grid_update"] = grid
     if args.json:
-        _print_json(result)
+        print_json(result)
     else:
         print(format_bench(result))
         print()

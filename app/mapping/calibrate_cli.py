@@ -3,14 +3,13 @@
 from __future__ import annotations
 
 import argparse
-import json
-import math
 import sys
 from pathlib import Path
 from typing import Any
 
 import numpy as np
 
+from app.fileio import print_json
 from app.imageio import read_bgr, write_image_atomic
 from app.mapping.calibration import (
     BoardPlacement,
@@ -28,16 +27,6 @@ from app.mapping.calibration_files import (
 from app.mapping.frames import GroundGrid
 from app.mapping.ipm import birdseye_image, build_birdseye_map
 from app.perception.image_checks import ImageError
-
-
-def _json_safe(value: Any) -> Any:
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
-    if isinstance(value, dict):
-        return {k: _json_safe(v) for k, v in value.items()}
-    if isinstance(value, list | tuple):
-        return [_json_safe(v) for v in value]
-    return value
 
 
 def cmd_intrinsics(args: argparse.Namespace) -> int:
@@ -69,7 +58,7 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
         "out": str(args.out) if args.out else None,
     }
     if args.json:
-        print(json.dumps(_json_safe(report), indent=2))
+        print_json(report)
     else:
         w, h = intrinsics.image_size
         print(
@@ -140,7 +129,7 @@ def cmd_floor(args: argparse.Namespace) -> int:
         "birdseye_png": str(birdseye_path) if birdseye_path else None,
     }
     if args.json:
-        print(json.dumps(_json_safe(report), indent=2))
+        print_json(report)
     else:
         print(
             f"floor homography from {calibration.inliers}/{calibration.points} corners: "

@@ -5,14 +5,13 @@ over the target, so a crash never leaves half a file), and OpenCV's XML/YAML int
 from __future__ import annotations
 
 import json
-import os
-import tempfile
 from pathlib import Path
 from typing import Any
 
 import cv2
 import numpy as np
 
+from app.fileio import write_bytes_atomic
 from app.mapping.calibration import CalibrationError, FloorCalibration, Intrinsics
 
 FORMAT_VERSION = 1
@@ -20,21 +19,7 @@ FORMAT_VERSION = 1
 
 def write_json_atomic(path: Path, document: dict[str, Any]) -> None:
     """Write ``document`` as JSON to ``path`` atomically."""
-    path.parent.mkdir(parents=True, exist_ok=True)
-    fd, tmp = tempfile.mkstemp(dir=path.parent, prefix=f".{path.name}.", suffix=".tmp")
-    try:
-        with os.fdopen(fd, "w") as handle:
-            json.dump(document, handle, indent=2)
-            handle.write("\n")
-            handle.flush()
-            os.fsync(handle.fileno())
-        mask = os.umask(0)
-        os.umask(mask)
-        os.chmod(tmp, 0o666 & ~mask)
-        os.replace(tmp, path)
-    except BaseException:
-        Path(tmp).unlink(missing_ok=True)
-        raise
+    write_bytes_atomic(path, (json.dumps(document, indent=2) + "\n").encode())
 
 
 def intrinsics_document(intrinsics: Intrinsics) -> dict[str, Any]:
