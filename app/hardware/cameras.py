@@ -1,0 +1,346 @@
+"""Frame sources implementing `app.hardware.interfaces.Camera`.
+
+`OpenCVCamera`
+    A V4L2 webcam read by OpenCV on a daemon thread that keeps only the newest frame.
+    When the device is missing or stops delivering, the state turns ``FAILED`` (with
+    the reason) and the thread reopens it with exponential backoff.
+`ReplayCamera`
+    A video file, a folder of images, or a `app.hardware.recorder` recording, paced at
+    the source's rate (or a given fps), optionally looping; ``ENDED`` at the end,
+    ``FAILED`` on an unreadable source. Never raises from its thread.
+`SimCamera`
+    The simulator's renderer at the robot's current pose, at a fixed fps; the ground
+    truth of each frame is kept with it (`SimCamera.latest_with_truth`).
+
+All three share the same contract: `open` starts the thread and returns at once,
+``latest(max_age_s)`` never blocks and refuses frames older than ``max_age_s``
+(``time.monotonic`` seconds), `close` stops the thread. They are context managers.
+"""
+
+from __future__ import annotations
+
+import json
+import logging
+import threading
+import time
+from collections.abc import Callable
+from pathlib import Path
+from types import TracebackType
+from typing import Self
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from app.hardware.interfaces import CameraFrame, DeviceState, DeviceStatus
+from app.mapping.frames import Pose2D
+from app.sim.render import RenderedFrame, Renderer
+
+log = logging.getLogger(__name__)
+
+IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".bmp"})
+
+
+class _ThreadedCamera:
+    """The shared part: a worker thread, the newest frame, the status."""
+
+    _thread_name = "camera"
+
+    def __init__(self) -> None:
+        self._lock = threading.Lock()
+        self._frame: CameraFrame | None = None
+        self._status = DeviceStatus(DeviceState.DISCONNECTED)
+        self._seq = 0
+        self._stop = threading.Event()
+        self._thread: threading.Thread | None = None
+
+    def open(self) -> None:
+        if self._thread is not None:
+            return
+        self._stop.clear()
+        self._set_status(DeviceState.CONNECTING)
+        self._thread = threading.Thread(target=self._guarded_run, name=self._thread_name)
+        self._thread.daemon = True
+        self._thread.start()
+
+    def close(self) -> None:
+        self._stop.set()
+        if self._thread is not None:
+            self._thread.join(timeout=5.0)
+            self._thread = None
+        self._set_status(DeviceState.DISCONNECTED)
+
+    def latest(self, max_age_s: float) -> CameraFrame | None:
+        with self._lock:
+            frame = self._frame
+        if frame is None or time.monotonic() - frame.timestamp_s > max_age_s:
+            return None
+        return frame
+
+    def status(self) -> DeviceStatus:
+        with self._lock:
+            return self._status
+
+    def __enter__(self) -> Self:
+        self.open()
+        return self
+
+    def __exit__(
+        self,
+        exc_type: type[BaseException] | None,
+        exc: BaseException | None,
+        tb: TracebackType | None,
+    ) -> None:
+        self.close()
+
+    def _set_status(self, state: DeviceState, detail: str = "") -> None:
+        with self._lock:
+            changed = self._status.state != state or self._status.detail != detail
+            self._status = DeviceStatus(state, detail)
+        if changed and state in (DeviceState.FAILED, DeviceState.ENDED):
+            log.info("%s: %s %s", self._thread_name, state, detail)
+
+    def _publish(self, image: NDArray[np.uint8], timestamp_s: float) -> CameraFrame:
+        with self._lock:
+            frame = CameraFrame(image=image, timestamp_s=timestamp_s, seq=self._seq)
+            self._seq += 1
+            self._frame = frame
+        return frame
+
+    def _guarded_run(self) -> None:
+        try:
+            self._run()
+        except Exception as exc:  # the thread must end in a state, never silently
+            log.exception("%s thread failed", self._thread_name)
+            self._set_status(DeviceState.FAILED, f"internal error: {exc!r}")
+
+    def _run(self) -> None:
+        raise NotImplementedError
+
+
+class OpenCVCamera(_ThreadedCamera):
+    """A webcam through OpenCV (V4L2 on Linux).
+
+    Parameters
+    ----------
+    device : int index (``/dev/videoN``) or a device path
+    width_px, height_px, fps : requested capture mode (the driver may pick another)
+    retry_initial_s, retry_max_s : reopen backoff after a failure, doubling each time
+    """
+
+    _thread_name = "opencv-camera"
+
+    def __init__(
+        self,
+        device: int | str = 0,
+        *,
+        width_px: int = 640,
+        height_px: int = 480,
+        fps: float = 30.0,
+        retry_initial_s: float = 0.5,
+        retry_max_s: float = 10.0,
+    ) -> None:
+        super().__init__()
+        if not 0 < retry_initial_s <= retry_max_s:
+            raise ValueError("need 0 < retry_initial_s <= retry_max_s")
+        self.device = device
+        self.width_px = width_px
+        self.height_px = height_px
+        self.fps = fps
+        self.retry_initial_s = retry_initial_s
+        self.retry_max_s = retry_max_s
+
+    def _connect(self) -> cv2.VideoCapture | None:
+        if isinstance(self.device, str) and not Path(self.device).exists():
+            self._set_status(DeviceState.FAILED, f"{self.device}: no such device")
+            return None
+        cap = cv2.VideoCapture(self.device, cv2.CAP_V4L2)
+        if not cap.isOpened():
+            cap.release()
+            self._set_status(DeviceState.FAILED, f"{self.device}: cannot open")
+            return None
+        cap.set(cv2.CAP_PROP_FOURCC, cv2.VideoWriter.fourcc(*"MJPG"))
+        cap.set(cv2.CAP_PROP_FRAME_WIDTH, self.width_px)
+        cap.set(cv2.CAP_PROP_FRAME_HEIGHT, self.height_px)
+        cap.set(cv2.CAP_PROP_FPS, self.fps)
+        cap.set(cv2.CAP_PROP_BUFFERSIZE, 1)
+        return cap
+
+    def _run(self) -> None:
+        backoff = self.retry_initial_s
+        while not self._stop.is_set():
+            self._set_status(DeviceState.CONNECTING)
+            cap = self._connect()
+            if cap is not None:
+                try:
+                    while not self._stop.is_set():
+                        ok, image = cap.read()
+                        if not ok or image is None:
+                            self._set_status(DeviceState.FAILED, f"{self.device}: read failed")
+                            break
+                        self._publish(np.ascontiguousarray(image), time.monotonic())
+                        self._set_status(DeviceState.CONNECTED)
+                        backoff = self.retry_initial_s
+                finally:
+                    cap.release()
+            self._stop.wait(backoff)
+            backoff = min(self.retry_max_s, backoff * 2)
+
+
+class ReplayCamera(_ThreadedCamera):
+    """Plays back a video file, an image folder (sorted by name) or a recording folder
+    (``frames/`` + ``log.jsonl``, paced by its recorded timestamps).
+
+    Parameters
+    ----------
+    source : path
+    fps : playback rate; None: the video's own rate, the recording's timestamps, or
+        ``default_fps`` for an image folder
+    loop : start again at the end instead of ending
+    """
+
+    _thread_name = "replay-camera"
+
+    def __init__(
+        self,
+        source: str | Path,
+        *,
+        fps: float | None = None,
+        loop: bool = False,
+        default_fps: float = 15.0,
+    ) -> None:
+        super().__init__()
+        if fps is not None and fps <= 0:
+            raise ValueError(f"fps must be > 0, got {fps}")
+        self.source = Path(source)
+        self.fps = fps
+        self.loop = loop
+        self.default_fps = default_fps
+
+    def _image_list(self) -> tuple[list[Path], list[float] | None]:
+        """Image files and, for a recording, their recorded times (seconds from the first)."""
+        folder = self.source
+        log_path = folder / "log.jsonl"
+        if (folder / "frames").is_dir() and log_path.is_file():
+            files: list[Path] = []
+            times: list[float] = []
+            for line in log_path.read_text(encoding="utf-8").splitlines():
+                entry = json.loads(line)
+                if entry.get("kind") == "frame":
+                    files.append(folder / str(entry["file"]))
+                    times.append(float(entry["t"]))
+            if times:
+                times = [t - times[0] for t in times]
+            return files, times
+        files = sorted(p for p in folder.iterdir() if p.suffix.lower() in IMAGE_SUFFIXES)
+        return files, None
+
+    def _pace(self, start_s: float, offset_s: float) -> bool:
+        """Wait until ``start_s + offset_s``; False when closed meanwhile."""
+        delay = start_s + offset_s - time.monotonic()
+        return not (delay > 0 and self._stop.wait(delay))
+
+    def _run(self) -> None:
+        if not self.source.exists():
+            self._set_status(DeviceState.FAILED, f"{self.source}: no such file or folder")
+            return
+        try:
+            if self.source.is_dir():
+                self._run_images()
+            else:
+                self._run_video()
+        except (OSError, ValueError, KeyError, cv2.error) as exc:
+            self._set_status(DeviceState.FAILED, f"{self.source}: {exc}")
+
+    def _run_images(self) -> None:
+        files, times = self._image_list()
+        if not files:
+            self._set_status(DeviceState.FAILED, f"{self.source}: no images")
+            return
+        period = 1.0 / (self.fps or self.default_fps)
+        while not self._stop.is_set():
+            start = time.monotonic()
+            for k, path in enumerate(files):
+                offset = times[k] if times is not None and self.fps is None else k * period
+                if not self._pace(start, offset):
+                    return
+                image = cv2.imread(str(path), cv2.IMREAD_COLOR)
+                if image is None:
+                    self._set_status(DeviceState.FAILED, f"{path}: unreadable image")
+                    return
+                self._publish(np.asarray(image, np.uint8), time.monotonic())
+                self._set_status(DeviceState.CONNECTED)
+            if not self.loop:
+                self._set_status(DeviceState.ENDED, f"{self.source}: end")
+                return
+            self._stop.wait(period)
+
+    def _run_video(self) -> None:
+        while not self._stop.is_set():
+            cap = cv2.VideoCapture(str(self.source))
+            try:
+                if not cap.isOpened():
+                    self._set_status(DeviceState.FAILED, f"{self.source}: cannot open video")
+                    return
+                source_fps = float(cap.get(cv2.CAP_PROP_FPS) or 0.0)
+                fps = self.fps or (source_fps if 0 < source_fps < 1000 else self.default_fps)
+                start = time.monotonic()
+                n = 0
+                while not self._stop.is_set():
+                    ok, image = cap.read()
+                    if not ok or image is None:
+                        break
+                    if not self._pace(start, n / fps):
+                        return
+                    self._publish(np.ascontiguousarray(image), time.monotonic())
+                    self._set_status(DeviceState.CONNECTED)
+                    n += 1
+            finally:
+                cap.release()
+            if n == 0:
+                self._set_status(DeviceState.FAILED, f"{self.source}: no decodable frames")
+                return
+            if not self.loop:
+                self._set_status(DeviceState.ENDED, f"{self.source}: end")
+                return
+
+
+class SimCamera(_ThreadedCamera):
+    """The simulated camera: renders at ``pose_source()`` (plan frame) ``fps`` times a
+    second on its thread (the renderer is used by that thread only).
+
+    `latest_with_truth` returns the frame together with its `RenderedFrame` (floor
+    mask and the exact pose it was rendered at).
+    """
+
+    _thread_name = "sim-camera"
+
+    def __init__(
+        self, renderer: Renderer, pose_source: Callable[[], Pose2D], *, fps: float = 15.0
+    ) -> None:
+        super().__init__()
+        if not 0 < fps <= 1000:
+            raise ValueError(f"fps must be in (0, 1000], got {fps}")
+        self.renderer = renderer
+        self.pose_source = pose_source
+        self.fps = fps
+        self._truth: tuple[CameraFrame, RenderedFrame] | None = None
+
+    def latest_with_truth(self, max_age_s: float) -> tuple[CameraFrame, RenderedFrame] | None:
+        with self._lock:
+            pair = self._truth
+        if pair is None or time.monotonic() - pair[0].timestamp_s > max_age_s:
+            return None
+        return pair
+
+    def _run(self) -> None:
+        period = 1.0 / self.fps
+        next_s = time.monotonic()
+        while not self._stop.is_set():
+            rendered = self.renderer.render(self.pose_source())
+            frame = self._publish(rendered.image, time.monotonic())
+            with self._lock:
+                self._truth = (frame, rendered)
+            self._set_status(DeviceState.CONNECTED)
+            next_s = max(next_s + period, time.monotonic() - period)
+            self._stop.wait(max(0.0, next_s - time.monotonic()))

@@ -1,0 +1,127 @@
+"""Cameras: replay of videos and image folders, a missing webcam, the simulated camera."""
+
+from __future__ import annotations
+
+import time
+from collections.abc import Callable
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from app.hardware.cameras import OpenCVCamera, ReplayCamera, SimCamera
+from app.hardware.interfaces import DeviceState
+from app.sim.render import CameraModel, Renderer
+from app.sim.world import parse_world
+
+
+def _wait(predicate: Callable[[], bool], timeout_s: float = 5.0) -> bool:
+    deadline = time.monotonic() + timeout_s
+    while time.monotonic() < deadline:
+        if predicate():
+            return True
+        time.sleep(0.005)
+    return False
+
+
+def _images(n: int) -> list[np.ndarray]:
+    return [np.full((48, 64, 3), 20 * k + 10, np.uint8) for k in range(n)]
+
+
+@pytest.fixture
+def video(tmp_path: Path) -> Path:
+    path = tmp_path / "clip.avi"
+    writer = cv2.VideoWriter(str(path), cv2.VideoWriter.fourcc(*"MJPG"), 50.0, (64, 48))
+    assert writer.isOpened()
+    for image in _images(5):
+        writer.write(image)
+    writer.release()
+    return path
+
+
+def _play(camera: ReplayCamera) -> list[int]:
+    """Grey levels of the frames seen until the camera ends or fails."""
+    seen: list[int] = []
+    last_seq = -1
+    with camera:
+        deadline = time.monotonic() + 5.0
+        while time.monotonic() < deadline:
+            frame = camera.latest(max_age_s=1.0)
+            if frame is not None and frame.seq != last_seq:
+                last_seq = frame.seq
+                seen.append(int(frame.image.mean()))
+            if camera.status().state in (DeviceState.ENDED, DeviceState.FAILED):
+                break
+            time.sleep(0.002)
+        assert camera.status().state == DeviceState.ENDED
+    return seen
+
+
+def test_replay_video_paced_then_ended(video: Path) -> None:
+    start = time.monotonic()
+    seen = _play(ReplayCamera(video))
+    assert time.monotonic() - start >= 4 / 50  # paced at the file's 50 fps
+    assert seen[-1] == pytest.approx(90, abs=3)
+    assert len(seen) >= 3
+
+
+def test_replay_image_folder(tmp_path: Path) -> None:
+    for k, image in enumerate(_images(4)):
+        cv2.imwrite(str(tmp_path / f"{k:03d}.png"), image)
+    seen = _play(ReplayCamera(tmp_path, fps=100.0))
+    assert seen == [10, 30, 50, 70]
+
+
+def test_replay_loops(tmp_path: Path) -> None:
+    for k, image in enumerate(_images(2)):
+        cv2.imwrite(str(tmp_path / f"{k}.png"), image)
+    with ReplayCamera(tmp_path, fps=200.0, loop=True) as camera:
+        assert _wait(lambda: (f := camera.latest(1.0)) is not None and f.seq >= 5)
+        assert camera.status().state == DeviceState.CONNECTED
+
+
+@pytest.mark.parametrize("name", ["broken.avi", "folder"])
+def test_replay_corrupt_fails_without_raising(tmp_path: Path, name: str) -> None:
+    if name == "folder":
+        (tmp_path / name).mkdir()
+        (tmp_path / name / "000.jpg").write_bytes(b"not a jpeg at all")
+    else:
+        (tmp_path / name).write_bytes(b"\x00garbage" * 100)
+    with ReplayCamera(tmp_path / name, fps=100.0) as camera:
+        assert _wait(lambda: camera.status().state == DeviceState.FAILED)
+        assert camera.status().detail
+        assert camera.latest(1.0) is None
+
+
+def test_replay_missing_source_fails(tmp_path: Path) -> None:
+    with ReplayCamera(tmp_path / "nope.mp4") as camera:
+        assert _wait(lambda: camera.status().state == DeviceState.FAILED)
+        assert "no such" in camera.status().detail
+
+
+def test_opencv_camera_missing_device_fails_and_retries() -> None:
+    camera = OpenCVCamera("/dev/video-floornav-missing", retry_initial_s=0.01, retry_max_s=0.02)
+    camera.open()
+    try:
+        assert _wait(lambda: camera.status().state == DeviceState.FAILED)
+        assert "no such device" in camera.status().detail
+        assert camera.latest(10.0) is None
+    finally:
+        camera.close()
+    assert camera.status().state == DeviceState.DISCONNECTED
+
+
+def test_sim_camera_frames_with_truth() -> None:
+    world = parse_world("[start]\nx_m = 1.0\ny_m = 1.0\n[[rooms]]\nrect_m = [0, 0, 3, 2]\n")
+    renderer = Renderer(world, CameraModel(width_px=160, height_px=120, fx_px=125, fy_px=125))
+    with SimCamera(renderer, lambda: world.start_pose, fps=100.0) as camera:
+        assert _wait(lambda: camera.latest_with_truth(1.0) is not None)
+        pair = camera.latest_with_truth(1.0)
+        assert pair is not None
+        frame, truth = pair
+        assert frame.image is truth.image and truth.pose == world.start_pose
+        assert frame.image.shape == (120, 160, 3) and truth.floor_mask.any()
+        assert camera.status().state == DeviceState.CONNECTED
+    time.sleep(0.02)
+    assert camera.latest(0.01) is None  # stale frames are refused
