@@ -89,6 +89,28 @@ def cmd_eval_superpixels(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_sim_eval(args: argparse.Namespace) -> int:
+    from app.evaluation import evaluate_on_simulator
+    from app.perception.pipeline import METHODS
+
+    config = _load(args.config)
+    methods = sorted(METHODS) if args.method == "all" else [args.method or config.perception.method]
+    summary = evaluate_on_simulator(config, methods, frames=args.frames)
+    if args.json:
+        print_json(summary)
+    else:
+        print(f"{summary['frames']} simulated frames of world {summary['world']!r}")
+        print(f"{'method':<18}{'iou':>8}{'recall':>9}{'precision':>11}{'near_FF':>9}")
+        scores = summary["methods"]
+        assert isinstance(scores, dict)
+        for method, s in scores.items():
+            print(
+                f"{method:<18}{s['iou']:>8.3f}{s['floor_recall']:>9.3f}"
+                f"{s['floor_precision']:>11.3f}{s['near_false_floor']:>9.3f}"
+            )
+    return 0
+
+
 def cmd_uno_check(args: argparse.Namespace) -> int:
     import asyncio
 
@@ -111,17 +133,25 @@ def cmd_uno_check(args: argparse.Namespace) -> int:
 def cmd_bench(args: argparse.Namespace) -> int:
     from app.benchmarks.grid import bench_grid_update, format_grid_bench
     from app.benchmarks.perception import format_bench, run_bench
+    from app.benchmarks.sim import bench_render
 
     config = _load(args.config)
     result = run_bench(config.perception, args.datasets, repeats=args.repeats)
     grid = bench_grid_update(max(1, args.repeats))
     result["grid_update"] = grid
+    render = bench_render(max(1, args.repeats // 2))
+    result["sim_render"] = render
     if args.json:
         print_json(result)
     else:
         print(format_bench(result))
         print()
         print(format_grid_bench(grid))
+        print(
+            f"\n== simulator render 640x480 ({render['frames']} frames): median "
+            f"{render['median']:.2f} ms, min {render['min']:.2f}, max {render['max']:.2f}"
+            f" -> {render['fps']:.0f} fps"
+        )
     return 0
 
 
@@ -165,6 +195,13 @@ def build_parser() -> argparse.ArgumentParser:
     p.set_defaults(func=cmd_eval_superpixels)
 
     add_calibrate_parser(sub)
+
+    p = sub.add_parser("sim-eval", help="floor masks on simulated frames vs ground truth")
+    p.add_argument("--method", help="a method name, or 'all' (default: from config)")
+    p.add_argument("--frames", type=int, default=30, help="frames along the path")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_config(p)
+    p.set_defaults(func=cmd_sim_eval)
 
     p = sub.add_parser(
         "uno-check", help="connect to the configured Uno, handshake, measure round trips"

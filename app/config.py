@@ -141,6 +141,20 @@ class MappingConfig(StrictModel):
         return self
 
 
+class SimConfig(StrictModel):
+    """The simulated world (used when the camera or the Uno is simulated)."""
+
+    world_file: str = ""
+    """Floor plan TOML (``app/sim/worlds/*.toml`` shows the format); empty: the shipped
+    default world."""
+    camera_height_m: Annotated[float, Field(gt=0.02, le=2.0)] = 0.22
+    camera_pitch_rad: Annotated[float, Field(ge=-0.2, le=1.4)] = 0.40
+    """Downward tilt of the simulated camera."""
+    focal_px: Annotated[float, Field(ge=50.0, le=5000.0)] = 500.0
+    noise_sigma: Annotated[float, Field(ge=0.0, le=50.0)] = 2.0
+    """Sensor noise of the simulated camera in 8-bit levels."""
+
+
 class SerialConfig(StrictModel):
     """The link to the Uno (``docs/protocol.md``); numbers map to
     `app.hardware.serial_link.UnoLinkConfig`, whose docstrings give the reasons."""
@@ -188,6 +202,7 @@ class FloornavConfig(BaseSettings):
     camera: CameraConfig = CameraConfig()
     mapping: MappingConfig = MappingConfig()
     serial: SerialConfig = SerialConfig()
+    sim: SimConfig = SimConfig()
 
     @classmethod
     def settings_customise_sources(

@@ -14,7 +14,7 @@ from pathlib import Path
 
 import numpy as np
 
-from app.config import PerceptionConfig
+from app.config import FloornavConfig, PerceptionConfig
 from app.imageio import read_bgr, read_mask
 from app.perception.image_checks import ImageError
 from app.perception.metrics import FloorScores, floor_scores, mean_scores
@@ -260,3 +260,32 @@ def format_superpixel_table(summary: dict[str, object]) -> str:
                 f"{s['segments']:>10.1f}{s['slic_ms_median']:>9.1f}"
             )
     return "\n".join(lines)
+
+
+def evaluate_on_simulator(
+    config: FloornavConfig, methods: list[str], *, frames: int = 30
+) -> dict[str, object]:
+    """Floor masks of each method on simulated frames vs the renderer's ground truth.
+
+    The robot follows the benchmark path through the default world (at least 0.3 m from
+    every obstacle). Returns ``{"frames": n, "world": name, "methods": {NAME: scores}}``.
+    """
+    from app.benchmarks.sim import bench_poses
+    from app.sim.setup import renderer_from_config
+
+    for method in methods:
+        if method not in METHODS:
+            raise ValueError(f"unknown method {method!r}; choose from {sorted(METHODS)}")
+    renderer = renderer_from_config(config)
+    segmenters = {m: FloorSegmenter(config.perception, method=m) for m in methods}
+    scores: dict[str, list[FloorScores]] = {m: [] for m in methods}
+    for pose in bench_poses(frames):
+        rendered = renderer.render(pose)
+        for method, segmenter in segmenters.items():
+            mask = segmenter.segment(rendered.image).floor_mask
+            scores[method].append(floor_scores(mask, rendered.floor_mask))
+    return {
+        "frames": frames,
+        "world": renderer.world.name,
+        "methods": {m: mean_scores(s) for m, s in scores.items()},
+    }

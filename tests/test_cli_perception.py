@@ -145,4 +145,17 @@ def test_bench_json_has_the_promised_shape(capsys: pytest.CaptureFixture[str]) -
         assert {"smooth", "color", "slic", "floor_model"} <= set(entry["stages_ms"])
         assert all(s["min"] <= s["median"] <= s["max"] for s in entry["stages_ms"].values())
     assert result["reference"]["640x480"]["total_ms"] > 0
+    assert result["grid_update"]["median"] > 0
+    assert result["sim_render"]["fps"] > 0
     assert result["speedup_vs_reference_640x480"] > 1.0
+
+
+def test_sim_eval_scores_methods_against_ground_truth(capsys: pytest.CaptureFixture[str]) -> None:
+    assert main(["sim-eval", "--frames", "3", "--method", "all", "--json"]) == 0
+    summary = json.loads(capsys.readouterr().out)
+    assert summary["frames"] == 3
+    for scores in summary["methods"].values():
+        assert scores["images"] == 3 and 0.0 <= scores["iou"] <= 1.0
+    # Every method finds a good part of the simulated floor and calls little else floor.
+    assert summary["methods"]["thesis"]["iou"] > 0.5
+    assert min(s["floor_precision"] for s in summary["methods"].values()) > 0.9

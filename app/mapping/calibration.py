@@ -1,15 +1,25 @@
 """Camera calibration from chessboard photos, and the floor homography.
 
-Intrinsics: OpenCV's chessboard detector with sub-pixel refinement and
-``cv2.calibrateCamera`` (Zhang's method). Floor homography ``H_ground_from_image``: from a
-chessboard lying on the floor, using every detected inner corner (RANSAC in pixels to drop
-outliers, then a least-squares refit on the inliers), optionally on undistorted corners;
-or from four or more hand-picked point pairs (the dashboard's calibration wizard).
+Intrinsics: OpenCV's chessboard detector with sub-pixel refinement (the sector-based
+``findChessboardCornersSB`` as a fallback) and ``cv2.calibrateCamera`` (Zhang's method).
+Images of another size than the majority (portrait phone photos among landscape ones) are
+rejected with a reason naming both sizes, not rotated: which way to rotate them back is not
+known, and the wrong way moves the principal point.
+
+Floor homography ``H_ground_from_image``: from a chessboard lying on the floor, using every
+detected inner corner (RANSAC in pixels to drop outliers, then a least-squares refit on the
+inliers), optionally on undistorted corners; or from four or more hand-picked point pairs
+(the dashboard's calibration wizard). With intrinsics, H applies to *undistorted* pixels
+(same camera matrix, no distortion); `FloorCalibration` carries the intrinsics and its
+methods undistort raw pixels first. H is scaled so that w (its third row times
+(u, v, 1)) is > 0 for pixels below the horizon, i.e. floor in front of the camera.
 
 Frames follow `app.mapping.frames`: ground = robot frame, metres, x forward, y left.
-The board's own frame: its first inner corner is the origin, ``+x`` runs along the board
-away from the camera (up the image) and ``+y`` to the left; `BoardPlacement` puts that
-frame into the robot frame.
+The board's own frame is fixed by geometry, not by OpenCV's detection order: +x runs along
+the board's grid axis closest to the camera's viewing direction (the direction in which
+the corners' camera depth grows: away from the camera), +y to the left seen from above,
+and the origin is the inner corner nearest to the camera on its right. Corner (a, b) lies
+at (a * square, b * square). `BoardPlacement` puts that frame into the robot frame.
 """
 
 from __future__ import annotations
