@@ -1,13 +1,22 @@
-"""``floornav calibrate intrinsics|floor``: the calibration commands."""
+"""``floornav calibrate intrinsics|floor``: the calibration commands.
+
+Errors (a board not found, too few usable photos, a missing or mismatched intrinsics
+file, a bad ``--pattern`` or ``--square-m``) print one line on stderr naming the file or
+parameter and exit with code 1.
+"""
 
 from __future__ import annotations
 
 import argparse
+import math
 import sys
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
+import cv2
 import numpy as np
+from numpy.typing import NDArray
 
 from app.fileio import print_json
 from app.imageio import read_bgr, write_image_atomic
@@ -29,8 +38,21 @@ from app.mapping.ipm import birdseye_image, build_birdseye_map
 from app.perception.image_checks import ImageError
 
 
+def _pattern(text: str) -> tuple[int, int]:
+    try:
+        return parse_pattern(text)
+    except CalibrationError as exc:
+        raise CalibrationError(f"--pattern: {exc}") from exc
+
+
+def _check_square(square_m: float) -> None:
+    if not (square_m > 0 and math.isfinite(square_m)):
+        raise CalibrationError(f"--square-m must be a positive size in metres, got {square_m}")
+
+
 def cmd_intrinsics(args: argparse.Namespace) -> int:
-    pattern = parse_pattern(args.pattern)
+    pattern = _pattern(args.pattern)
+    _check_square(args.square_m)
     images = []
     unreadable = []
     for path in args.images:
@@ -38,7 +60,13 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
             images.append((str(path), read_bgr(path)))
         except ImageError as exc:
             unreadable.append((str(path), str(exc)))
-    result = calibrate_intrinsics(images, pattern, args.square_m)
+    try:
+        result = calibrate_intrinsics(images, pattern, args.square_m)
+    except CalibrationError as exc:
+        if not unreadable:
+            raise
+        skipped = "; ".join(f"{name}: {reason}" for name, reason in unreadable)
+        raise CalibrationError(f"{exc}; also unreadable: {skipped}") from exc
     intrinsics = result.intrinsics
     if args.out:
         save_intrinsics(args.out, intrinsics)
@@ -77,8 +105,21 @@ def cmd_intrinsics(args: argparse.Namespace) -> int:
     return 0
 
 
+def board_outline_m(
+    pattern: tuple[int, int], square_m: float, placement: BoardPlacement
+) -> NDArray[np.float64]:
+    """Robot-frame corners of the rectangle the board's inner corners can span, in both
+    of its orientations (which side runs away from the camera is found by the fit)."""
+    cols, rows = pattern
+    extents = [(cols - 1, rows - 1), (rows - 1, cols - 1)]
+    board = np.array(
+        [[a * i, b * j] for a, b in extents for i in (0, 1) for j in (0, 1)], dtype=np.float64
+    )
+    return placement.to_robot(board * square_m)
+
+
 def birdseye_grid_around_board(
-    calibration: FloorCalibration, board_ground: np.ndarray
+    calibration: FloorCalibration, board_ground: NDArray[np.float64]
 ) -> GroundGrid:
     """A bird's-eye raster centred on the board, twice its size, about 600 cells across."""
     x_min, y_min = board_ground.min(axis=0)
@@ -95,26 +136,44 @@ def birdseye_grid_around_board(
     )
 
 
+def draw_board_frame(
+    view: NDArray[np.uint8], grid: GroundGrid, placement: BoardPlacement, square_m: float
+) -> None:
+    """Mark the board origin (red ring) and its +x (red) and +y (green) axes, one square
+    long, on a bird's-eye view: what the calibration assumed, for a person to check."""
+    c, s = math.cos(placement.yaw_rad), math.sin(placement.yaw_rad)
+    origin = np.array([placement.x_m, placement.y_m])
+    points = np.array(
+        [origin, origin + square_m * np.array([c, s]), origin + square_m * np.array([-s, c])]
+    )
+    cells = grid.cell_of(points)
+    pixel = [(int(col), int(row)) for row, col in cells]  # cv2 wants (x = col, y = row)
+    radius = max(3, round(0.25 * square_m / grid.cell_m))
+    cv2.circle(view, pixel[0], radius, (0, 0, 255), 2)
+    cv2.line(view, pixel[0], pixel[1], (0, 0, 255), 2)
+    cv2.line(view, pixel[0], pixel[2], (0, 200, 0), 2)
+
+
 def cmd_floor(args: argparse.Namespace) -> int:
-    pattern = parse_pattern(args.pattern)
+    pattern = _pattern(args.pattern)
+    _check_square(args.square_m)
     image = read_bgr(args.image)
     height, width = image.shape[:2]
     intrinsics = load_intrinsics(args.intrinsics, (width, height)) if args.intrinsics else None
     placement = BoardPlacement(args.board_x_m, args.board_y_m, args.board_yaw_rad)
-    calibration = floor_homography_from_chessboard(
-        image, pattern, args.square_m, intrinsics=intrinsics, placement=placement
-    )
+    try:
+        calibration = floor_homography_from_chessboard(
+            image, pattern, args.square_m, intrinsics=intrinsics, placement=placement
+        )
+    except CalibrationError as exc:
+        raise CalibrationError(f"{args.image}: {exc}") from exc
     birdseye_path = None
     if args.out:
         save_floor_calibration(args.out, calibration)
-        cols, rows = pattern
-        corners = np.array(
-            [[0, 0], [0, cols - 1], [rows - 1, 0], [rows - 1, cols - 1], [cols - 1, rows - 1]],
-            dtype=np.float64,
-        )
-        board_ground = placement.to_robot(corners * args.square_m)
+        board_ground = board_outline_m(pattern, args.square_m, placement)
         grid = birdseye_grid_around_board(calibration, board_ground)
         view = birdseye_image(image, build_birdseye_map(calibration, grid, max_range_m=1e6))
+        draw_board_frame(view, grid, placement, args.square_m)
         birdseye_path = args.out.with_suffix(".birdseye.png")
         write_image_atomic(birdseye_path, view)
     report = {
@@ -125,6 +184,8 @@ def cmd_floor(args: argparse.Namespace) -> int:
         "inliers": calibration.inliers,
         "undistorted": intrinsics is not None,
         "image_size_px": [width, height],
+        "board_origin_px": list(calibration.board_origin_px or ()) or None,
+        "board_origin_m": [placement.x_m, placement.y_m],
         "out": str(args.out) if args.out else None,
         "birdseye_png": str(birdseye_path) if birdseye_path else None,
     }
@@ -136,19 +197,29 @@ def cmd_floor(args: argparse.Namespace) -> int:
             f"reprojection RMS {calibration.reprojection_rms_px:.3f} px, "
             f"ground RMS {calibration.ground_rms_m * 1000:.2f} mm"
         )
+        if calibration.board_origin_px is not None:
+            u, v = calibration.board_origin_px
+            print(
+                f"board origin (inner corner nearest the camera, on its right) at pixel "
+                f"({u:.1f}, {v:.1f}) = robot ({placement.x_m:.3f}, {placement.y_m:.3f}) m"
+            )
+        if intrinsics is not None:
+            print("H applies to undistorted pixels (the intrinsics are stored with it)")
         if args.out:
             print(f"written to {args.out} and {birdseye_path}")
     return 0
 
 
-def _run(func: Any) -> Any:
+def _run(func: Callable[[argparse.Namespace], int]) -> Callable[[argparse.Namespace], int]:
+    """Turn the errors a user can cause (bad input, unreadable or missing files) into
+    one line on stderr and exit code 1."""
+
     def wrapped(args: argparse.Namespace) -> int:
         try:
-            code: int = func(args)
-        except CalibrationError as exc:
-            print(f"floornav calibrate: {exc}", file=sys.stderr)
+            return func(args)
+        except (ValueError, OSError) as exc:  # CalibrationError and ImageError included
+            print(f"floornav calibrate {args.calibrate_kind}: {exc}", file=sys.stderr)
             return 1
-        return code
 
     return wrapped
 
@@ -171,9 +242,19 @@ def add_calibrate_parser(sub: Any) -> None:
     p.add_argument("--pattern", required=True, help="inner corners, COLSxROWS (e.g. 12x12)")
     p.add_argument("--square-m", type=float, required=True, help="square size in metres")
     p.add_argument("--intrinsics", type=Path, help="intrinsics (our JSON or OpenCV XML/YAML)")
-    p.add_argument("--board-x-m", type=float, default=0.0, help="first corner, robot x (m)")
-    p.add_argument("--board-y-m", type=float, default=0.0, help="first corner, robot y (m)")
-    p.add_argument("--board-yaw-rad", type=float, default=0.0, help="board yaw in the robot frame")
+    p.add_argument(
+        "--board-x-m",
+        type=float,
+        default=0.0,
+        help="robot x of the board origin: the inner corner nearest the camera, on its right",
+    )
+    p.add_argument("--board-y-m", type=float, default=0.0, help="robot y of the board origin")
+    p.add_argument(
+        "--board-yaw-rad",
+        type=float,
+        default=0.0,
+        help="angle from the robot's x to the board's x (its rows away from the camera)",
+    )
     p.add_argument("--out", type=Path, help="write the floor calibration JSON (+ .birdseye.png)")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.set_defaults(func=_run(cmd_floor))

@@ -24,6 +24,8 @@ at (a * square, b * square). `BoardPlacement` puts that frame into the robot fra
 
 from __future__ import annotations
 
+import dataclasses
+import itertools
 import math
 from collections.abc import Sequence
 from dataclasses import dataclass, field
@@ -35,7 +37,12 @@ from numpy.typing import NDArray
 MIN_CALIBRATION_IMAGES = 3
 _FULL_FLAGS = cv2.CALIB_CB_ADAPTIVE_THRESH | cv2.CALIB_CB_NORMALIZE_IMAGE
 _FIND_FLAGS = _FULL_FLAGS | cv2.CALIB_CB_FAST_CHECK
+_SB_FLAGS = cv2.CALIB_CB_NORMALIZE_IMAGE | cv2.CALIB_CB_EXHAUSTIVE | cv2.CALIB_CB_ACCURACY
 _SUBPIX_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_MAX_ITER, 50, 1e-4)
+# Iterative undistortion to 1e-10: OpenCV's default (5 iterations) is off by up to 0.16 px
+# in the corners of a strongly distorted image.
+_UNDISTORT_CRITERIA = (cv2.TERM_CRITERIA_EPS + cv2.TERM_CRITERIA_COUNT, 50, 1e-10)
+_DIST_LENGTHS = (4, 5, 8, 12, 14)
 
 
 class CalibrationError(ValueError):
@@ -57,6 +64,11 @@ def parse_pattern(text: str) -> tuple[int, int]:
 
 
 def _gray(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    if image.dtype != np.uint8 or image.ndim not in (2, 3) or min(image.shape[:2]) < 8:
+        raise CalibrationError(
+            f"image: expected (H, W) or (H, W, 3) uint8 of at least 8x8 px, got "
+            f"{image.dtype} {image.shape}"
+        )
     if image.ndim == 2:
         return image
     return np.asarray(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), dtype=np.uint8)
@@ -75,7 +87,8 @@ def find_chessboard(
     Returns
     -------
     (rows * cols, 2) float32 pixel coordinates in OpenCV's row-major order, or None when
-    the board is not found.
+    the board is not found. Which corner comes first depends on the view; see
+    `canonical_board_corners`.
     """
     gray = _gray(image)
     found, corners = cv2.findChessboardCorners(gray, pattern, flags=_FIND_FLAGS)
@@ -84,7 +97,12 @@ def find_chessboard(
         # steeply viewed boards: look once more without it.
         found, corners = cv2.findChessboardCorners(gray, pattern, flags=_FULL_FLAGS)
     if not found or corners is None:
-        return None
+        # Last resort, slower (about 1 s at 1600x1200): the sector-based detector, which
+        # copes with blur and uneven light and returns sub-pixel corners itself.
+        found, corners = cv2.findChessboardCornersSB(gray, pattern, flags=_SB_FLAGS)
+        if not found or corners is None:
+            return None
+        return np.asarray(corners, dtype=np.float32).reshape(-1, 2)
     # The refinement window scales with the board's square size in the image.
     spacing = float(np.median(np.linalg.norm(np.diff(corners.reshape(-1, 2), axis=0), axis=1)))
     half = int(np.clip(spacing / 4.0, 3, 11))
@@ -118,6 +136,30 @@ class Intrinsics:
     image_size: tuple[int, int]
     rms_px: float = float("nan")
 
+    def __post_init__(self) -> None:
+        matrix = np.asarray(self.camera_matrix, dtype=np.float64)
+        dist = np.asarray(self.dist, dtype=np.float64).ravel()
+        if matrix.shape != (3, 3) or not np.isfinite(matrix).all():
+            raise CalibrationError(f"camera matrix must be a finite 3x3 matrix, got {matrix}")
+        if not (matrix[0, 0] > 0 and matrix[1, 1] > 0) or not np.allclose(
+            matrix[2], (0.0, 0.0, 1.0)
+        ):
+            raise CalibrationError(
+                f"camera matrix must look like [[fx, 0, cx], [0, fy, cy], [0, 0, 1]] with "
+                f"fx, fy > 0, got {matrix.tolist()}"
+            )
+        if dist.size not in _DIST_LENGTHS or not np.isfinite(dist).all():
+            raise CalibrationError(
+                f"distortion must be {', '.join(map(str, _DIST_LENGTHS))} finite "
+                f"coefficients, got {dist.size}: {dist.tolist()}"
+            )
+        size = tuple(int(v) for v in self.image_size)
+        if len(size) != 2 or min(size) <= 0:
+            raise CalibrationError(f"image size must be (width, height) > 0, got {size}")
+        object.__setattr__(self, "camera_matrix", matrix)
+        object.__setattr__(self, "dist", dist)
+        object.__setattr__(self, "image_size", size)
+
     @property
     def fx_px(self) -> float:
         return float(self.camera_matrix[0, 0])
@@ -137,12 +179,18 @@ class Intrinsics:
     def undistort_points(self, points_px: NDArray[np.floating]) -> NDArray[np.float64]:
         """(N, 2) distorted pixels -> (N, 2) undistorted pixels (same camera matrix)."""
         pts = np.asarray(points_px, dtype=np.float64).reshape(-1, 1, 2)
-        out = cv2.undistortPoints(pts, self.camera_matrix, self.dist, P=self.camera_matrix)
+        if len(pts) == 0:
+            return np.empty((0, 2), dtype=np.float64)
+        out = cv2.undistortPoints(
+            pts, self.camera_matrix, self.dist, P=self.camera_matrix, criteria=_UNDISTORT_CRITERIA
+        )
         return np.asarray(out, dtype=np.float64).reshape(-1, 2)
 
     def distort_points(self, points_px: NDArray[np.floating]) -> NDArray[np.float64]:
         """(N, 2) undistorted pixels -> (N, 2) pixels as the lens images them."""
         pts = np.asarray(points_px, dtype=np.float64).reshape(-1, 2)
+        if len(pts) == 0:
+            return np.empty((0, 2), dtype=np.float64)
         k_inv = np.linalg.inv(self.camera_matrix)
         rays = np.column_stack([pts, np.ones(len(pts))]) @ k_inv.T
         projected, _ = cv2.projectPoints(
@@ -246,12 +294,19 @@ def calibrate_intrinsics(
 
 @dataclass(frozen=True)
 class BoardPlacement:
-    """Where the floor board's frame lies in the robot frame: its first inner corner at
-    (x_m, y_m), its +x axis turned by yaw_rad from the robot's +x."""
+    """Where the floor board's frame lies in the robot frame: its origin (the inner corner
+    nearest to the camera on its right) at (x_m, y_m), its +x axis (the grid axis that runs
+    away from the camera) turned by yaw_rad from the robot's +x. Keep |yaw| < 45 deg: +x
+    is by definition the board axis closest to the viewing direction."""
 
     x_m: float = 0.0
     y_m: float = 0.0
     yaw_rad: float = 0.0
+
+    def __post_init__(self) -> None:
+        for name in ("x_m", "y_m", "yaw_rad"):
+            if not math.isfinite(getattr(self, name)):
+                raise CalibrationError(f"board placement {name} must be finite")
 
     def to_robot(self, board_xy: NDArray[np.floating]) -> NDArray[np.float64]:
         c, s = math.cos(self.yaw_rad), math.sin(self.yaw_rad)
@@ -268,12 +323,16 @@ class FloorCalibration:
     Attributes
     ----------
     H_ground_from_image : (3, 3) float64; maps (u, v, 1) of a floor pixel (undistorted
-        with ``intrinsics`` first when they are given) to (x, y, 1) in the robot frame
+        with ``intrinsics`` first when they are given) to (x, y, 1) in the robot frame;
+        scaled so that w > 0 below the horizon
     image_size : (width, height)
     intrinsics : Intrinsics or None
-    reprojection_rms_px : float, ground points projected into the image vs measured
-    ground_rms_m : float, measured image points mapped to the ground vs true positions
+    reprojection_rms_px : float, ground points projected into the raw image (through the
+        inverse homography and the lens distortion) vs the measured pixels, over inliers
+    ground_rms_m : float, measured image points mapped to the ground vs true positions,
+        over inliers
     points : int, point pairs given; inliers : int, pairs kept
+    board_origin_px : (u, v) raw pixel of the board's origin corner (chessboard path only)
     """
 
     H_ground_from_image: NDArray[np.float64]
@@ -283,9 +342,29 @@ class FloorCalibration:
     ground_rms_m: float
     points: int
     inliers: int
+    board_origin_px: tuple[float, float] | None = None
+
+    def __post_init__(self) -> None:
+        H = np.asarray(self.H_ground_from_image, dtype=np.float64)
+        if H.shape != (3, 3) or not np.isfinite(H).all():
+            raise CalibrationError("H_ground_from_image must be a finite 3x3 matrix")
+        norm = float(np.linalg.norm(H))
+        if norm == 0.0 or abs(np.linalg.det(H / norm)) < 1e-15:
+            raise CalibrationError("H_ground_from_image is singular")
+        size = tuple(int(v) for v in self.image_size)
+        if len(size) != 2 or min(size) <= 0:
+            raise CalibrationError(f"image size must be (width, height) > 0, got {size}")
+        if self.intrinsics is not None and self.intrinsics.image_size != size:
+            raise CalibrationError(
+                f"the intrinsics are for {_size_text(self.intrinsics.image_size)} images but "
+                f"the floor calibration for {_size_text(size)}"
+            )
+        object.__setattr__(self, "H_ground_from_image", H)
+        object.__setattr__(self, "image_size", size)
 
     @property
     def H_image_from_ground(self) -> NDArray[np.float64]:
+        """Ground -> undistorted pixels; w > 0 for floor points in front of the camera."""
         return np.asarray(np.linalg.inv(self.H_ground_from_image), dtype=np.float64)
 
     def image_to_ground(self, points_px: NDArray[np.floating]) -> NDArray[np.float64]:
@@ -304,13 +383,17 @@ class FloorCalibration:
         return pts
 
 
+def _size_text(size: Sequence[int]) -> str:
+    return f"{size[0]}x{size[1]} px"
+
+
 def apply_homography(
     H: NDArray[np.float64], points: NDArray[np.floating], *, require_positive_w: bool = False
 ) -> NDArray[np.float64]:
     """(N, 2) points through a 3x3 homography; with ``require_positive_w`` the points on
     the far side of the horizon (w <= 0, normalised so w > 0 means in front) are NaN."""
     pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
-    homogeneous = np.column_stack([pts, np.ones(len(pts))]) @ H.T
+    homogeneous = np.column_stack([pts, np.ones(len(pts))]) @ np.asarray(H, np.float64).T
     w = homogeneous[:, 2]
     out = homogeneous[:, :2] / np.where(np.abs(w) < 1e-12, np.nan, w)[:, None]
     if require_positive_w:
@@ -318,15 +401,33 @@ def apply_homography(
     return out
 
 
+def homography_w(H: NDArray[np.float64], points: NDArray[np.floating]) -> NDArray[np.float64]:
+    """(N,) third homogeneous coordinate of H (p, 1): for a `FloorCalibration`'s H > 0
+    below the horizon, < 0 above it, 0 on it."""
+    pts = np.asarray(points, dtype=np.float64).reshape(-1, 2)
+    return np.asarray(pts @ H[2, :2] + H[2, 2], dtype=np.float64)
+
+
 def _normalise_sign(
     H: NDArray[np.float64], image_points: NDArray[np.float64]
 ) -> NDArray[np.float64]:
-    """Scale H so that w > 0 for the measured floor points (they are in front)."""
-    w = np.column_stack([image_points, np.ones(len(image_points))]) @ H[2]
-    scale = 1.0 / H[2, 2] if abs(H[2, 2]) > 1e-12 else 1.0
-    if np.median(w) * scale < 0:
-        scale = -scale
-    return H * scale
+    """Scale H so that |H[2, 2]| = 1 (if possible) and w > 0 at the measured floor points.
+
+    Raises `CalibrationError` if the points lie on both sides of the fitted horizon:
+    a camera sees every floor point in front of it, so such pairs are inconsistent.
+    """
+    scale = 1.0 / abs(H[2, 2]) if abs(H[2, 2]) > 1e-9 * np.abs(H).max() else 1.0
+    H = H * scale
+    w = homography_w(H, image_points)
+    if np.median(w) < 0:
+        H, w = -H, -w
+    if not (w > 0).all():
+        raise CalibrationError(
+            f"the point pairs are inconsistent: {int((w <= 0).sum())} of {len(w)} lie beyond "
+            "the horizon the others imply (is each image point paired with its own ground "
+            "point?)"
+        )
+    return H
 
 
 def _check_spread(points: NDArray[np.float64], name: str) -> None:
@@ -337,18 +438,45 @@ def _check_spread(points: NDArray[np.float64], name: str) -> None:
     centred = points - points.mean(axis=0)
     singular = np.linalg.svd(centred, compute_uv=False)
     if singular[0] <= 0 or singular[1] / singular[0] < 1e-3:
-        raise CalibrationError(f"{name}: points are (nearly) collinear")
+        raise CalibrationError(f"{name}: points are (nearly) collinear or coincide")
+    if len(points) == 4:
+        # Four points fix a homography only if no three of them are on a line.
+        scale = float(singular[0]) ** 2
+        for a, b, c in itertools.combinations(range(4), 3):
+            (u1, v1), (u2, v2) = points[b] - points[a], points[c] - points[a]
+            if abs(u1 * v2 - u2 * v1) < 1e-4 * scale:
+                raise CalibrationError(
+                    f"{name}: points {a}, {b} and {c} are (nearly) collinear; 4 pairs need "
+                    "no three on a line"
+                )
 
 
-def _check_horizon(H: NDArray[np.float64], image_size: tuple[int, int]) -> None:
-    """The image's bottom corners must see the floor in front of the camera."""
+def _check_horizon(
+    H: NDArray[np.float64], image_size: tuple[int, int], intrinsics: Intrinsics | None
+) -> None:
+    """Refuse a horizon below the image bottom: both bottom corners above the horizon
+    means every image row is, so no pixel would see the floor in front of the camera.
+    (A rolled camera may see the horizon cross the bottom edge; that is allowed.)"""
     width, height = image_size
     bottom = np.array([[0.0, height - 1.0], [width - 1.0, height - 1.0]])
-    w = np.column_stack([bottom, np.ones(2)]) @ H[2]
-    if not (w > 0).all():
+    if intrinsics is not None:
+        bottom = intrinsics.undistort_points(bottom)
+    if not (homography_w(H, bottom) > 0).any():
         raise CalibrationError(
-            "the homography puts the horizon below the image bottom (the bottom row would "
-            "not be floor in front of the camera): check the point pairs"
+            "the homography puts the horizon below the image bottom (no image row would "
+            "see floor in front of the camera): are near and far points swapped?"
+        )
+
+
+def _check_orientation(H: NDArray[np.float64]) -> None:
+    """A camera above the floor sees it from above, where the image's (u right, v down)
+    is left-handed and the robot's (x forward, y left) right-handed: with w > 0 on the
+    floor, det(H) < 0 (the Jacobian of a homography is det(H) / w^3)."""
+    if np.linalg.det(H) > 0:
+        raise CalibrationError(
+            "the ground points are mirrored relative to the image: the robot frame has "
+            "x forward and y to the LEFT (were left and right swapped, or is the camera "
+            "image mirrored?)"
         )
 
 
@@ -356,14 +484,29 @@ def _fit_report(
     H_ground_from_image: NDArray[np.float64],
     image_pts: NDArray[np.float64],
     ground_pts: NDArray[np.float64],
+    *,
+    raw_pts: NDArray[np.float64],
+    intrinsics: Intrinsics | None,
 ) -> tuple[float, float]:
+    """(reprojection RMS in raw pixels, ground RMS in metres); ``image_pts`` are the
+    pixels H applies to, ``raw_pts`` the measured ones."""
     mapped = apply_homography(H_ground_from_image, image_pts)
     ground_rms = float(np.sqrt(((mapped - ground_pts) ** 2).sum(axis=1).mean()))
     projected = apply_homography(
         np.asarray(np.linalg.inv(H_ground_from_image), dtype=np.float64), ground_pts
     )
-    reprojection_rms = float(np.sqrt(((projected - image_pts) ** 2).sum(axis=1).mean()))
+    if intrinsics is not None:
+        projected = intrinsics.distort_points(projected)
+    reprojection_rms = float(np.sqrt(((projected - raw_pts) ** 2).sum(axis=1).mean()))
     return reprojection_rms, ground_rms
+
+
+def check_floor_calibration(calibration: FloorCalibration) -> None:
+    """The physical sanity checks of a fitted homography, for one loaded from a file:
+    some of the image bottom sees the floor in front of the camera, and the ground is
+    not mirrored. Raises `CalibrationError`."""
+    _check_horizon(calibration.H_ground_from_image, calibration.image_size, calibration.intrinsics)
+    _check_orientation(calibration.H_ground_from_image)
 
 
 def homography_from_point_pairs(
@@ -376,19 +519,30 @@ def homography_from_point_pairs(
 ) -> FloorCalibration:
     """``H_ground_from_image`` from N >= 4 image points with known ground positions.
 
+    The fit minimises the image-space error (where the measurement noise is): a DLT and
+    Levenberg-Marquardt refinement of H_image_from_ground (``cv2.findHomography``),
+    inverted. With exactly 4 pairs it is exact.
+
     Parameters
     ----------
     image_points_px : (N, 2) raw pixels (undistorted here when ``intrinsics`` are given)
-    ground_points_m : (N, 2) robot-frame metres
+    ground_points_m : (N, 2) robot-frame metres (x forward, y left)
     image_size : (width, height) of the images the homography is for
+    intrinsics : lens model; H then applies to undistorted pixels
     ransac_threshold_px : reject pairs farther than this from the RANSAC model before
         the least-squares fit (None: use every pair, the manual path)
+
+    Returns
+    -------
+    FloorCalibration, H scaled so that w > 0 below the horizon.
 
     Raises
     ------
     CalibrationError
-        Fewer than 4 pairs, mismatched counts, NaNs, collinear points, or a result that
-        puts the horizon below the image bottom.
+        Fewer than 4 pairs, mismatched counts, NaNs, image points outside the image,
+        collinear or repeated points, pairs on both sides of the fitted horizon, a
+        result that puts the horizon below the image bottom, or mirrored ground points
+        (y to the right).
     """
     image_pts = np.asarray(image_points_px, dtype=np.float64).reshape(-1, 2)
     ground_pts = np.asarray(ground_points_m, dtype=np.float64).reshape(-1, 2)
@@ -396,6 +550,24 @@ def homography_from_point_pairs(
         raise CalibrationError(f"{len(image_pts)} image points but {len(ground_pts)} ground points")
     _check_spread(image_pts, "image points")
     _check_spread(ground_pts, "ground points")
+    width, height = image_size
+    if intrinsics is not None and intrinsics.image_size != (width, height):
+        raise CalibrationError(
+            f"intrinsics are for {_size_text(intrinsics.image_size)} images but the "
+            f"homography for {_size_text(image_size)}"
+        )
+    outside = (
+        (image_pts[:, 0] < -0.5)
+        | (image_pts[:, 0] > width - 0.5)
+        | (image_pts[:, 1] < -0.5)
+        | (image_pts[:, 1] > height - 0.5)
+    )
+    if outside.any():
+        u, v = image_pts[np.flatnonzero(outside)[0]]
+        raise CalibrationError(
+            f"image point ({u:.1f}, {v:.1f}) lies outside the {_size_text(image_size)} image"
+        )
+    raw_pts = image_pts
     if intrinsics is not None:
         image_pts = intrinsics.undistort_points(image_pts)
     inliers = np.ones(len(image_pts), dtype=bool)
@@ -403,18 +575,26 @@ def homography_from_point_pairs(
         # RANSAC on ground -> image so the threshold is in pixels, where the noise is.
         _, mask = cv2.findHomography(ground_pts, image_pts, cv2.RANSAC, ransac_threshold_px)
         if mask is not None and int(mask.sum()) >= 4:
-            inliers = mask.ravel().astype(bool)
+            inliers = np.asarray(mask).ravel().astype(bool)
     H_image_from_ground, _ = cv2.findHomography(ground_pts[inliers], image_pts[inliers], 0)
     if H_image_from_ground is None:
         raise CalibrationError("no homography fits these points (degenerate configuration)")
-    H = _normalise_sign(np.linalg.inv(np.asarray(H_image_from_ground, dtype=np.float64)), image_pts)
-    if not np.isfinite(H).all():
-        raise CalibrationError("the homography is not finite (degenerate configuration)")
-    _check_horizon(H, image_size)
-    reprojection_rms, ground_rms = _fit_report(H, image_pts[inliers], ground_pts[inliers])
+    G = np.asarray(H_image_from_ground, dtype=np.float64)
+    if not np.isfinite(G).all() or np.linalg.cond(G) > 1e12:
+        raise CalibrationError("the homography is singular (degenerate configuration)")
+    H = _normalise_sign(np.asarray(np.linalg.inv(G), np.float64), image_pts[inliers])
+    _check_horizon(H, (width, height), intrinsics)
+    _check_orientation(H)
+    reprojection_rms, ground_rms = _fit_report(
+        H,
+        image_pts[inliers],
+        ground_pts[inliers],
+        raw_pts=raw_pts[inliers],
+        intrinsics=intrinsics,
+    )
     return FloorCalibration(
         H_ground_from_image=H,
-        image_size=image_size,
+        image_size=(width, height),
         intrinsics=intrinsics,
         reprojection_rms_px=reprojection_rms,
         ground_rms_m=ground_rms,
@@ -423,23 +603,56 @@ def homography_from_point_pairs(
     )
 
 
+def _grid_homography(grid: NDArray[np.float64]) -> NDArray[np.float64]:
+    """H_image_from_indices of an (n0, n1, 2) corner grid, scaled so w > 0 on the board
+    (w is then proportional to each corner's depth along the camera axis)."""
+    n0, n1 = grid.shape[:2]
+    i0, i1 = np.meshgrid(np.arange(n0), np.arange(n1), indexing="ij")
+    indices = np.column_stack([i0.ravel(), i1.ravel()]).astype(np.float64)
+    found, _ = cv2.findHomography(indices, grid.reshape(-1, 2), 0)
+    if found is None:
+        raise CalibrationError("the detected corners do not form a planar grid")
+    G = np.asarray(found, dtype=np.float64)
+    if np.median(homography_w(G, indices)) < 0:
+        G = -G
+    return G
+
+
 def canonical_board_corners(
     corners_px: NDArray[np.floating], pattern: tuple[int, int]
 ) -> NDArray[np.float64]:
-    """Reorder detected corners into a (rows', cols', 2) grid whose first index runs away
-    from the camera (up the image) and whose second index runs to the left, whatever
-    corner OpenCV started from. For a square board rows and columns may swap."""
+    """Reorder detected corners into an (n_away, n_left, 2) grid, whatever corner OpenCV
+    started from.
+
+    The first index runs away from the camera: along the grid axis in which the corners'
+    camera depth (the w of the board's homography) grows fastest; if the camera looks
+    straight down (no depth change), along the axis that runs up the image. The second
+    index runs to the left seen from above (chosen so the image-from-board homography
+    keeps det < 0, see `_check_orientation`). Corner [0, 0] is the one nearest to the
+    camera on its right. Rows and columns swap when the pattern lies the other way round.
+    This holds for a rolled camera too (e.g. a landscape photo of a portrait scene).
+    """
     cols, rows = pattern
     grid = np.asarray(corners_px, dtype=np.float64).reshape(rows, cols, 2)
-    step_first = (grid[1:, :, :] - grid[:-1, :, :]).mean(axis=(0, 1))
-    step_second = (grid[:, 1:, :] - grid[:, :-1, :]).mean(axis=(0, 1))
-    # The axis whose step is more vertical in the image becomes "away" (+x).
-    if abs(step_second[1]) > abs(step_first[1]):
+    G = _grid_homography(grid)
+    gradient = G[2, :2]  # depth change per index step along each grid axis
+    mean_w = float(np.median(homography_w(G, np.array([[(rows - 1) / 2, (cols - 1) / 2]]))))
+    if float(np.abs(gradient).max()) * max(rows, cols) > 1e-3 * abs(mean_w):
+        away_axis = int(np.argmax(np.abs(gradient)))
+        away_positive = bool(gradient[away_axis] > 0)
+    else:  # looking straight down: away = up the image
+        steps = [
+            (grid[1:, :, :] - grid[:-1, :, :]).mean(axis=(0, 1)),
+            (grid[:, 1:, :] - grid[:, :-1, :]).mean(axis=(0, 1)),
+        ]
+        ups = [-step[1] / (np.linalg.norm(step) + 1e-12) for step in steps]
+        away_axis = int(np.argmax(np.abs(ups)))
+        away_positive = bool(ups[away_axis] > 0)
+    if away_axis == 1:
         grid = grid.transpose(1, 0, 2)
-        step_first, step_second = step_second, step_first
-    if step_first[1] > 0:  # +x must go up the image (v decreasing)
+    if not away_positive:
         grid = grid[::-1, :, :]
-    if step_second[0] > 0:  # +y must go left in the image (u decreasing)
+    if np.linalg.det(_grid_homography(grid)) > 0:
         grid = grid[:, ::-1, :]
     return np.ascontiguousarray(grid)
 
@@ -455,13 +668,28 @@ def floor_homography_from_chessboard(
 ) -> FloorCalibration:
     """``H_ground_from_image`` from a chessboard lying on the floor (all inner corners).
 
+    Parameters
+    ----------
+    image : (H, W) or (H, W, 3) uint8
+    pattern : (cols, rows) inner corners; square_m : square side in metres
+    intrinsics : lens model for this image size; corners are undistorted first and H
+        applies to undistorted pixels
+    placement : the board frame (see the module docstring) in the robot frame; default:
+        the board frame itself
+    ransac_threshold_px : RANSAC inlier threshold before the least-squares refit
+
+    Returns
+    -------
+    FloorCalibration with ``board_origin_px`` set.
+
     Raises
     ------
     CalibrationError
         The board is not found, the square size is not positive, the intrinsics belong to
-        another image size, or the fit is degenerate.
+        another image size, or the fit is degenerate or fails a sanity check of
+        `homography_from_point_pairs`.
     """
-    if square_m <= 0 or not math.isfinite(square_m):
+    if not (square_m > 0 and math.isfinite(square_m)):
         raise CalibrationError(f"square size must be a positive number of metres, got {square_m}")
     height, width = image.shape[:2]
     if intrinsics is not None and intrinsics.image_size != (width, height):
@@ -472,7 +700,8 @@ def floor_homography_from_chessboard(
     corners = find_chessboard(image, pattern)
     if corners is None:
         raise CalibrationError(
-            f"chessboard with {pattern[0]}x{pattern[1]} inner corners not found in the image"
+            f"chessboard with {pattern[0]}x{pattern[1]} inner corners not found in the "
+            f"{width}x{height} px image (whole board visible? --pattern counts inner corners)"
         )
     grid = canonical_board_corners(corners, pattern)
     n_away, n_left = grid.shape[:2]
@@ -481,10 +710,12 @@ def floor_homography_from_chessboard(
         axis=-1,
     ).reshape(-1, 2)
     ground = (placement or BoardPlacement()).to_robot(board_xy)
-    return homography_from_point_pairs(
+    calibration = homography_from_point_pairs(
         grid.reshape(-1, 2),
         ground,
         (width, height),
         intrinsics=intrinsics,
         ransac_threshold_px=ransac_threshold_px,
     )
+    origin = (float(grid[0, 0, 0]), float(grid[0, 0, 1]))
+    return dataclasses.replace(calibration, board_origin_px=origin)

@@ -23,7 +23,7 @@ import time
 from dataclasses import dataclass
 
 from app.mapping.frames import Pose2D
-from app.sim.world import World
+from app.sim.world import DEFAULT_ROBOT_RADIUS_M, World
 
 PWM_MAX = 255
 
@@ -40,7 +40,7 @@ class RobotParams:
     """Below this the motor does not overcome friction (a real gear motor's stall)."""
     motor_tau_s: float = 0.08
     ticks_per_rev: int = 360
-    radius_m: float = 0.15
+    radius_m: float = DEFAULT_ROBOT_RADIUS_M
     """The circle the robot occupies, for collisions."""
 
     def __post_init__(self) -> None:

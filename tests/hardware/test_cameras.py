@@ -12,6 +12,7 @@ import pytest
 
 from app.hardware.cameras import OpenCVCamera, ReplayCamera, SimCamera
 from app.hardware.interfaces import DeviceState
+from app.mapping.frames import Pose2D
 from app.sim.render import CameraModel, Renderer
 from app.sim.world import parse_world
 
@@ -125,3 +126,22 @@ def test_sim_camera_frames_with_truth() -> None:
         assert camera.status().state == DeviceState.CONNECTED
     time.sleep(0.02)
     assert camera.latest(0.01) is None  # stale frames are refused
+
+
+def test_sim_camera_on_demand_renders_the_current_pose() -> None:
+    world = parse_world("[start]\nx_m = 1.0\ny_m = 1.0\n[[rooms]]\nrect_m = [0, 0, 3, 2]\n")
+    renderer = Renderer(world, CameraModel(width_px=160, height_px=120, fx_px=125, fy_px=125))
+    poses = [world.start_pose, Pose2D(2.0, 1.0, 0.0)]
+    camera = SimCamera(renderer, lambda: poses[0], fps=None)
+    assert camera.latest(1.0) is None  # not open
+    with camera:
+        first = camera.latest_with_truth(1.0)
+        poses[0] = poses[1]
+        second = camera.latest_with_truth(1.0)
+        assert first is not None and second is not None
+        assert first[1].pose == world.start_pose and second[1].pose == poses[1]
+        assert second[0].seq == first[0].seq + 1
+        # Closer to the wall x = 3: less floor in view.
+        assert second[1].floor_mask.sum() < first[1].floor_mask.sum()
+        assert camera.status().state == DeviceState.CONNECTED
+    assert camera.status().state == DeviceState.DISCONNECTED

@@ -7,11 +7,9 @@ import math
 import numpy as np
 import pytest
 
-from app.config import PerceptionConfig
 from app.mapping.frames import Pose2D
-from app.perception.pipeline import FloorSegmenter
 from app.sim.render import CameraModel, Renderer
-from app.sim.world import load_world, parse_world
+from app.sim.world import parse_world
 
 ROOM = """
 [start]
@@ -95,14 +93,51 @@ def test_occupancy_truth_is_cached() -> None:
 
 
 def test_perception_finds_simulated_floor() -> None:
-    world = load_world()
-    renderer = Renderer(world)
-    segmenter = FloorSegmenter(PerceptionConfig())
-    ious: list[float] = []
-    for k in range(3):
-        pose = Pose2D(1.2 + 0.5 * k, 3.0 - 0.2 * k, -0.3 * k)
-        frame = renderer.render(pose)
-        mask = segmenter.segment(frame.image).floor_mask
-        union = np.count_nonzero(mask | frame.floor_mask)
-        ious.append(int(np.count_nonzero(mask & frame.floor_mask)) / max(int(union), 1))
-    assert float(np.mean(ious)) > 0.3
+    """The floor pipeline against the renderer's truth on the shipped world (reported
+    by ``floornav sim-eval``), only loosely asserted here."""
+    from app.config import FloornavConfig
+    from app.evaluation import evaluate_on_simulator
+
+    summary = evaluate_on_simulator(FloornavConfig(), ["floornav"], frames=3)
+    scores = summary["methods"]["floornav"]  # type: ignore[index]
+    assert scores["iou"] > 0.3
+
+
+OPEN_FLOOR = """
+[start]
+x_m = 0.0
+y_m = 0.0
+[floor]
+pattern = "plain"
+color = "#808080"
+variation = 0.0
+[[floor_areas]]
+rect_m = [3.0, -2.0, 3.5, 2.0]
+surface = { pattern = "plain", color = "#c02020", variation = 0.0 }
+[lighting]
+attenuation_distance_m = 1000.0
+"""
+
+
+def test_floor_only_view_mask_and_world_fixed_texture() -> None:
+    renderer = Renderer(parse_world(OPEN_FLOOR), CameraModel(noise_sigma=0.0))
+    cam = renderer.camera
+    rays = cam.rays_robot()
+    centre = cam.width_px // 2
+    for x in (0.0, 1.0):
+        frame = renderer.render(Pose2D(x, 0.0, 0.0))
+        # Nothing but floor: the mask is exactly the pixels whose ray points down.
+        assert (frame.floor_mask == (rays[..., 2] < 0)).all()
+        # The red strip x in [3, 3.5] stays put in the plan as the robot moves.
+        red = frame.image[:, centre, 2].astype(int) - frame.image[:, centre, 0].astype(int) > 60
+        rows = np.flatnonzero(red)
+        near_edge, far_edge = cam.floor_row_px(3.0 - x), cam.floor_row_px(3.5 - x)
+        assert abs(rows.max() - near_edge) <= 1.5
+        assert abs(rows.min() - far_edge) <= 1.5
+
+
+def test_render_bench_smoke() -> None:
+    from app.benchmarks.sim import bench_render
+
+    result = bench_render(1)
+    assert result["frames"] == 30 and float(result["median"]) > 0
