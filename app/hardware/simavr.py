@@ -49,13 +49,23 @@ class SimavrUno:
     Parameters
     ----------
     plant : optional `MotorPlant` that receives every motor change the harness reports
-        (the simulated robot's wheels)
+        (the simulated robot's wheels); its encoder counts are fed back to the firmware
+        as encoder pulse rates every ``encoder_period_s``
     build : run ``make -C firmware`` first (a no-op when up to date)
     """
 
-    def __init__(self, plant: MotorPlant | None = None, *, build: bool = True) -> None:
+    def __init__(
+        self,
+        plant: MotorPlant | None = None,
+        *,
+        build: bool = True,
+        encoder_period_s: float = 0.05,
+    ) -> None:
         self.plant = plant
         self.build = build
+        self.encoder_period_s = encoder_period_s
+        self._stop = threading.Event()
+        self._stdin_lock = threading.Lock()
         self.port = ""
         self.pwm = (0, 0)
         self._proc: subprocess.Popen[str] | None = None
@@ -90,11 +100,42 @@ class SimavrUno:
         self.port = lines[0].split()[1]
         # The host handshakes with HELLO after it opens the port, so the CPU may start
         # now: a boot banner sent before the port is opened is simply not needed.
-        self._proc.stdin.write("START\n")
-        self._proc.stdin.flush()
+        self._send("START")
         self._reader = threading.Thread(target=self._follow, name="simavr-motors", daemon=True)
         self._reader.start()
+        if self.plant is not None:
+            threading.Thread(
+                target=self._feed_encoders, name="simavr-encoders", daemon=True
+            ).start()
         return self
+
+    def _send(self, line: str) -> None:
+        proc = self._proc
+        if proc is None or proc.stdin is None:
+            return
+        with self._stdin_lock:
+            try:
+                proc.stdin.write(line + "\n")
+                proc.stdin.flush()
+            except (OSError, ValueError):
+                pass  # the harness is gone; close() reports nothing more to do
+
+    def _feed_encoders(self) -> None:
+        """The plant's encoder count rates become the harness's encoder pulse rates (the
+        firmware counts one tick per channel-A rising edge)."""
+        assert self.plant is not None
+        previous = self.plant.read_encoders()
+        sent = (0, 0)
+        while not self._stop.wait(self.encoder_period_s):
+            counts = self.plant.read_encoders()
+            rates = tuple(
+                round((now - before) / self.encoder_period_s)
+                for now, before in zip(counts, previous, strict=True)
+            )
+            previous = counts
+            if rates != sent:
+                self._send(f"ENC {rates[0]} {rates[1]}")
+                sent = (rates[0], rates[1])
 
     def _follow(self) -> None:
         assert self._proc is not None and self._proc.stdout is not None
@@ -108,6 +149,7 @@ class SimavrUno:
                 self.plant.apply_pwm(left, right)
 
     def close(self) -> None:
+        self._stop.set()
         proc, self._proc = self._proc, None
         if proc is None:
             return

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import asyncio
 import json
 
 import pytest
@@ -18,3 +19,23 @@ def test_uno_check_on_the_firmware_in_simavr(
     report = json.loads(capsys.readouterr().out)
     assert report["firmware"].startswith("floornav-fw")
     assert report["rtt_median_ms"] < 10.0
+
+
+@pytest.mark.firmware
+async def test_simulated_wheels_feed_the_firmware_encoders(firmware_build: object) -> None:
+    from app.hardware.serial_link import UnoLink
+    from app.hardware.simavr import SimavrUno
+    from app.sim.sim_uno import IntegratingPlant
+
+    plant = IntegratingPlant()
+    with SimavrUno(plant, build=False) as firmware:
+        async with UnoLink(firmware.port) as link:
+            await link.wait_connected(5.0)
+            await link.drive(100, -100)
+            await asyncio.sleep(0.5)
+            assert firmware.pwm == (100, -100)
+            telemetry = link.latest_telemetry(0.5)
+            assert telemetry is not None
+            # About 2 counts per PWM-second from the plant, fed back as pulses.
+            assert telemetry.data.encoder_left > 20 and telemetry.data.encoder_right < -20
+            await link.stop_motors()
