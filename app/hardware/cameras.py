@@ -24,6 +24,7 @@ import json
 import logging
 import threading
 import time
+from abc import ABC, abstractmethod
 from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
@@ -42,7 +43,7 @@ log = logging.getLogger(__name__)
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".bmp"})
 
 
-class _ThreadedCamera:
+class _ThreadedCamera(ABC):
     """The shared part: a worker thread, the newest frame, the status."""
 
     _thread_name = "camera"
@@ -115,8 +116,9 @@ class _ThreadedCamera:
             log.exception("%s thread failed", self._thread_name)
             self._set_status(DeviceState.FAILED, f"internal error: {exc!r}")
 
+    @abstractmethod
     def _run(self) -> None:
-        raise NotImplementedError
+        """The source's loop, run on the camera thread until ``_stop`` is set."""
 
 
 class OpenCVCamera(_ThreadedCamera):
