@@ -145,3 +145,31 @@ def test_sim_camera_on_demand_renders_the_current_pose() -> None:
         assert second[1].floor_mask.sum() < first[1].floor_mask.sum()
         assert camera.status().state == DeviceState.CONNECTED
     assert camera.status().state == DeviceState.DISCONNECTED
+
+
+def test_real_robot_video_replays_through_the_floor_pipeline() -> None:
+    """The replay source on a real robot's video (MPEG-4, 320x240, 24 fps), frames fed
+    to the default segmenter: the carpet just ahead of the robot is floor."""
+    from app.config import PerceptionConfig
+    from app.perception.pipeline import FloorSegmenter
+
+    from ..conftest import dataset_dir
+
+    video = dataset_dir("robot-video-carpet") / "video2.avi"
+    segmenter = FloorSegmenter(PerceptionConfig())
+    seqs: list[int] = []
+    floor_ahead: list[float] = []
+    with ReplayCamera(video) as camera:
+        deadline = time.monotonic() + 5.0
+        while len(seqs) < 8 and time.monotonic() < deadline:
+            frame = camera.latest(max_age_s=0.5)
+            if frame is None or (seqs and frame.seq == seqs[-1]):
+                time.sleep(0.01)
+                continue
+            seqs.append(frame.seq)
+            assert frame.image.shape == (240, 320, 3)
+            mask = segmenter.segment(frame.image).floor_mask
+            floor_ahead.append(float(mask[-24:, 100:220].mean()))
+        assert camera.status().state is DeviceState.CONNECTED
+    assert len(seqs) == 8 and seqs == sorted(seqs)
+    assert float(np.median(floor_ahead)) > 0.5
