@@ -23,7 +23,6 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import statistics
 import sys
 import time
@@ -32,6 +31,7 @@ from dataclasses import dataclass
 import numpy as np
 from numpy.typing import NDArray
 
+from app.benchmarks import pin_to_one_cpu
 from app.mapping.frames import FLOOR, NOT_FLOOR, UNSEEN, GroundGrid, Pose2D
 from app.mapping.occupancy import OccupancyGrid, build_polar_table
 
@@ -200,8 +200,7 @@ def format_grid_bench(result: dict[str, float | int | str]) -> str:
 
 def main(argv: list[str]) -> int:  # python -m app.benchmarks.grid [REPEATS]
     repeats = int(argv[0]) if argv else 20
-    if hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+    pin_to_one_cpu()
     print(json.dumps(bench_grid_update(repeats), indent=2))
     return 0
 

@@ -8,7 +8,6 @@ the robot's pipeline gets one core per stage.
 
 from __future__ import annotations
 
-import os
 import statistics
 from dataclasses import dataclass
 from pathlib import Path
@@ -17,6 +16,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
+from app.benchmarks import pin_to_one_cpu
 from app.config import PerceptionConfig
 from app.evaluation import list_labelled_images
 from app.imageio import read_bgr
@@ -70,15 +70,6 @@ def bench_images(datasets_dir: Path, limit: int = 12) -> tuple[list[NDArray[np.u
 def resize_u8(image: NDArray[np.uint8], width: int, height: int) -> NDArray[np.uint8]:
     resized = cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
     return np.asarray(resized, dtype=np.uint8)
-
-
-def pin_to_one_cpu() -> str:
-    cv2.setNumThreads(1)
-    if hasattr(os, "sched_setaffinity"):
-        cpu = min(os.sched_getaffinity(0))
-        os.sched_setaffinity(0, {cpu})
-        return f"cpu {cpu}"
-    return "unpinned"
 
 
 def _stats(samples: list[float]) -> StageStats:

@@ -11,11 +11,11 @@ from __future__ import annotations
 
 import json
 import math
-import os
 import statistics
 import sys
 import time
 
+from app.benchmarks import pin_to_one_cpu
 from app.mapping.frames import Pose2D
 from app.sim.render import CameraModel, Renderer
 from app.sim.world import load_world
@@ -69,8 +69,7 @@ def bench_render(repeats: int) -> dict[str, float | int | str]:
 
 def main(argv: list[str]) -> int:  # python -m app.benchmarks.sim [REPEATS]
     repeats = int(argv[0]) if argv else 10
-    if hasattr(os, "sched_setaffinity"):
-        os.sched_setaffinity(0, {min(os.sched_getaffinity(0))})
+    pin_to_one_cpu()
     print(json.dumps(bench_render(repeats), indent=2))
     return 0
 

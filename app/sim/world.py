@@ -51,8 +51,9 @@ from typing import Annotated, Literal
 import cv2
 import numpy as np
 from numpy.typing import NDArray
-from pydantic import AfterValidator, BaseModel, ConfigDict, Field, ValidationError
+from pydantic import AfterValidator, Field, ValidationError
 
+from app.config import StrictModel
 from app.mapping.frames import GroundGrid, Pose2D
 
 DEFAULT_WORLD_PATH = Path(__file__).resolve().parent / "worlds" / "default.toml"
@@ -75,14 +76,10 @@ Point = tuple[Coordinate, Coordinate]
 Variation = Annotated[float, Field(ge=0.0, le=0.5)]
 
 
-class _Strict(BaseModel):
-    model_config = ConfigDict(extra="forbid", frozen=True)
-
-
 # -- floors ----------------------------------------------------------------------------
 
 
-class PlainFloor(_Strict):
+class PlainFloor(StrictModel):
     """One colour with a faint low-frequency mottling."""
 
     pattern: Literal["plain"] = "plain"
@@ -91,7 +88,7 @@ class PlainFloor(_Strict):
     seed: int = 0
 
 
-class TilesFloor(_Strict):
+class TilesFloor(StrictModel):
     """Square tiles with joints (grout); each tile's brightness varies a little."""
 
     pattern: Literal["tiles"] = "tiles"
@@ -103,7 +100,7 @@ class TilesFloor(_Strict):
     seed: int = 0
 
 
-class WoodFloor(_Strict):
+class WoodFloor(StrictModel):
     """Planks along x in staggered rows, with seams, grain and per-plank tint."""
 
     pattern: Literal["wood"] = "wood"
@@ -117,7 +114,7 @@ class WoodFloor(_Strict):
     seed: int = 0
 
 
-class CarpetFloor(_Strict):
+class CarpetFloor(StrictModel):
     """Short-pile carpet: band-limited noise at ``grain_m`` plus sparse flecks."""
 
     pattern: Literal["carpet"] = "carpet"
@@ -135,7 +132,7 @@ FloorSurface = Annotated[
 _PATTERN_NAMES = frozenset({"plain", "tiles", "wood", "carpet"})
 
 
-class FloorArea(_Strict):
+class FloorArea(StrictModel):
     """A rectangle of floor with its own surface (a rug, a tiled room)."""
 
     rect_m: tuple[Coordinate, Coordinate, Coordinate, Coordinate]
@@ -149,7 +146,7 @@ WallFinish = Literal["paint", "floor"]
 thesis's trap: a wall that looks like floor)."""
 
 
-class WallSpec(_Strict):
+class WallSpec(StrictModel):
     """An open polyline of vertical wall panels (zero thickness, both sides visible)."""
 
     points_m: list[Point] = Field(min_length=2, max_length=1000)
@@ -158,7 +155,7 @@ class WallSpec(_Strict):
     finish: WallFinish = "paint"
 
 
-class RoomSpec(_Strict):
+class RoomSpec(StrictModel):
     """A closed rectangle of walls ``[x_min, y_min, x_max, y_max]``."""
 
     rect_m: tuple[Coordinate, Coordinate, Coordinate, Coordinate]
@@ -167,7 +164,7 @@ class RoomSpec(_Strict):
     finish: WallFinish = "paint"
 
 
-class BoxSpec(_Strict):
+class BoxSpec(StrictModel):
     """An upright box: footprint ``size_m`` (its own x, y) centred at ``center_m``,
     turned by ``yaw_rad``."""
 
@@ -178,13 +175,13 @@ class BoxSpec(_Strict):
     color: Color = "#b03028"
 
 
-class StartSpec(_Strict):
+class StartSpec(StrictModel):
     x_m: Coordinate
     y_m: Coordinate
     theta_rad: Annotated[float, Field(ge=-10.0, le=10.0)] = 0.0
 
 
-class LightingSpec(_Strict):
+class LightingSpec(StrictModel):
     """A directional light plus ambient light; brightness falls with distance from the
     camera as ``1 / (1 + (d / attenuation_distance_m)^2)``."""
 
@@ -196,17 +193,17 @@ class LightingSpec(_Strict):
     background_color: Color = "#4a4c50"
 
 
-class WorldSpec(_Strict):
+class WorldSpec(StrictModel):
     """The whole floor plan as read from TOML."""
 
     name: str = "unnamed"
     description: str = ""
     start: StartSpec
     floor: FloorSurface = TilesFloor()
-    floor_areas: list[FloorArea] = []
-    rooms: list[RoomSpec] = []
-    walls: list[WallSpec] = []
-    boxes: list[BoxSpec] = []
+    floor_areas: list[FloorArea] = Field(default_factory=list)
+    rooms: list[RoomSpec] = Field(default_factory=list)
+    walls: list[WallSpec] = Field(default_factory=list)
+    boxes: list[BoxSpec] = Field(default_factory=list)
     lighting: LightingSpec = LightingSpec()
 
 
