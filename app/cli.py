@@ -31,6 +31,21 @@ def cmd_validate_config(args: argparse.Namespace) -> int:
     return 0
 
 
+def cmd_run(args: argparse.Namespace) -> int:
+    from app.daemon import run_daemon
+
+    # Validated before any device is touched: a bad key exits 2 naming it.
+    config = _load(args.config)
+    if args.duration_s is not None and not args.duration_s > 0:
+        raise ValueError(f"--duration-s must be > 0, got {args.duration_s}")
+    return run_daemon(
+        config,
+        config_source=str(args.config),
+        duration_s=args.duration_s,
+        report_path=args.report,
+    )
+
+
 def cmd_segment(args: argparse.Namespace) -> int:
     from app.imageio import read_bgr, write_image_atomic
     from app.perception.overlay import draw_overlay
@@ -170,6 +185,12 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("validate-config", help="check a config file; print 'ok' or each error")
     p.add_argument("path", type=Path, nargs="?", default=DEFAULT_CONFIG_PATH)
     p.set_defaults(func=cmd_validate_config)
+
+    p = sub.add_parser("run", help="run the daemon (the simulator with the shipped config)")
+    p.add_argument("--duration-s", type=float, help="stop after this many seconds")
+    p.add_argument("--report", type=Path, help="write a JSON run report here at exit")
+    add_config(p)
+    p.set_defaults(func=cmd_run)
 
     p = sub.add_parser("segment", help="segment the floor in one image and write an overlay")
     p.add_argument("image", type=Path)

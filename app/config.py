@@ -107,6 +107,12 @@ class CameraConfig(StrictModel):
     x_m: Annotated[float, Field(ge=-1.0, le=1.0)] = 0.10
     """Camera position in the robot frame (x forward); rays of the map start here."""
     y_m: Annotated[float, Field(ge=-1.0, le=1.0)] = 0.0
+    source: Literal["sim", "device", "replay"] = "sim"
+    """``sim``: rendered from the simulated robot's pose; ``device``: a webcam
+    (``device``); ``replay``: a video, image folder or recording (``device`` is its path)."""
+    device: str = "0"
+    """Webcam index (``0``) or path (``/dev/v4l/by-id/...``), or the replay source."""
+    fps_hz: Annotated[float, Field(gt=0.0, le=240.0)] = 30.0
 
 
 class MappingConfig(StrictModel):
@@ -182,6 +188,89 @@ class SerialConfig(StrictModel):
         return self
 
 
+class DriveConfig(StrictModel):
+    """The differential drive: geometry (for odometry and kinematics), the motors' PWM
+    response and the limits every command is held to."""
+
+    wheel_base_m: Annotated[float, Field(gt=0.02, le=2.0)] = 0.20
+    wheel_radius_m: Annotated[float, Field(gt=0.005, le=0.5)] = 0.033
+    ticks_per_rev: Annotated[int, Field(ge=1, le=100000)] = 360
+    """Encoder counts per wheel revolution (both edges of both channels)."""
+    max_wheel_speed_m_s: Annotated[float, Field(gt=0.0, le=5.0)] = 0.5
+    """Wheel surface speed at PWM 255 (measure it: drive at 255, read the encoders)."""
+    pwm_deadband: Annotated[int, Field(ge=0, le=200)] = 30
+    """PWM at or below which the wheels do not turn; commands start just above it."""
+    max_linear_speed_m_s: Annotated[float, Field(gt=0.0, le=2.0)] = 0.35
+    max_angular_speed_rad_s: Annotated[float, Field(gt=0.0, le=10.0)] = 1.5
+    max_linear_accel_m_s2: Annotated[float, Field(gt=0.0, le=20.0)] = 1.0
+    max_angular_accel_rad_s2: Annotated[float, Field(gt=0.0, le=50.0)] = 5.0
+    control_period_ms: Annotated[float, Field(ge=5.0, le=100.0)] = 20.0
+    """How often the command mux is evaluated (timeouts, ramps); new perception results
+    are sent at once, without waiting for the tick."""
+
+
+class SteeringConfig(StrictModel):
+    """Choosing the window of advancement (heading and speed) from the map."""
+
+    cruise_speed_m_s: Annotated[float, Field(gt=0.0, le=2.0)] = 0.30
+    turn_speed_rad_s: Annotated[float, Field(gt=0.0, le=10.0)] = 1.0
+    heading_gain_per_s: Annotated[float, Field(gt=0.0, le=20.0)] = 2.0
+    """Angular speed per radian of heading error."""
+    turn_in_place_rad: Annotated[float, Field(gt=0.0, le=3.2)] = 0.7
+    """Heading errors above this turn in place instead of driving an arc."""
+    min_advance_m: Annotated[float, Field(gt=0.0, le=5.0)] = 0.45
+    """A direction is open when this much free floor lies along it."""
+    slow_down_m: Annotated[float, Field(gt=0.0, le=5.0)] = 0.8
+    """Speed falls linearly as the free range ahead shrinks from this to the clearance."""
+    lookahead_m: Annotated[float, Field(gt=0.0, le=5.0)] = 0.6
+    """Aim at the frontier path this far ahead."""
+    window_margin_rad: Annotated[float, Field(ge=0.0, le=1.0)] = 0.15
+    """Keep the heading this far inside an open window's edges."""
+    smoothing: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.4
+    """Exponential smoothing of successive commands (0: none)."""
+    frontier_period_s: Annotated[float, Field(gt=0.0, le=10.0)] = 0.5
+    local_window_m: Annotated[float, Field(ge=1.0, le=20.0)] = 6.0
+    """Side of the map window around the robot that steering looks at."""
+
+
+class SafetyConfig(StrictModel):
+    """The host's stop layers (the firmware's deadman is the last one)."""
+
+    perception_max_age_s: Annotated[float, Field(gt=0.0, le=5.0)] = 0.5
+    """Autonomy stops when the newest floor result is older than this."""
+    camera_max_age_s: Annotated[float, Field(gt=0.0, le=5.0)] = 0.5
+    """A camera without a frame this recent counts as gone."""
+    teleop_timeout_s: Annotated[float, Field(gt=0.0, le=5.0)] = 0.5
+    autonomy_timeout_s: Annotated[float, Field(gt=0.0, le=5.0)] = 0.5
+    min_clearance_m: Annotated[float, Field(ge=0.0, le=3.0)] = 0.20
+    """Free floor needed ahead of the robot's front edge to move forward."""
+
+
+class RuntimeConfig(StrictModel):
+    """The daemon."""
+
+    autostart: bool = False
+    """Start exploring as soon as the devices are up (the shipped simulator config does);
+    otherwise wait for ``POST /api/start``."""
+    log_json: bool = False
+    """One JSON object per log line instead of text."""
+    log_level: Literal["debug", "info", "warning", "error"] = "info"
+
+
+class WebConfig(StrictModel):
+    """The HTTP API and dashboard."""
+
+    host: str = "127.0.0.1"
+    port: Annotated[int, Field(ge=1, le=65535)] = 8080
+
+
+class ViserConfig(StrictModel):
+    """The viser 3D view (its own server, bound to localhost, proxied under /viser)."""
+
+    enabled: bool = True
+    port: Annotated[int, Field(ge=1, le=65535)] = 8081
+
+
 _toml_path: contextvars.ContextVar[Path | None] = contextvars.ContextVar(
     "floornav_config_path", default=None
 )
@@ -203,6 +292,21 @@ class FloornavConfig(BaseSettings):
     mapping: MappingConfig = MappingConfig()
     serial: SerialConfig = SerialConfig()
     sim: SimConfig = SimConfig()
+    drive: DriveConfig = DriveConfig()
+    steering: SteeringConfig = SteeringConfig()
+    safety: SafetyConfig = SafetyConfig()
+    runtime: RuntimeConfig = RuntimeConfig()
+    web: WebConfig = WebConfig()
+    viser: ViserConfig = ViserConfig()
+
+    @model_validator(mode="after")
+    def _check_devices(self) -> FloornavConfig:
+        if self.camera.source == "sim" and self.serial.backend == "port":
+            raise ValueError(
+                "camera.source = 'sim' renders the simulated robot, which only moves with "
+                "serial.backend = 'sim' or 'simavr'; use a real camera with a real Uno"
+            )
+        return self
 
     @classmethod
     def settings_customise_sources(

@@ -1,0 +1,1 @@
+"""Commands: priority mux, kinematics and odometry, steering (pure logic, no I/O)."""

@@ -1,0 +1,156 @@
+"""The devices a configuration selects, opened and closed together: the camera, the
+Uno's serial port (and how to make its link), the floor calibration, and for the
+simulator the world, the simulated robot and the simulated Uno."""
+
+from __future__ import annotations
+
+import contextlib
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+
+from app.config import FloornavConfig
+from app.hardware.cameras import OpenCVCamera, ReplayCamera, SimCamera
+from app.hardware.interfaces import Camera
+from app.hardware.serial_link import UnoLink
+from app.hardware.simavr import SimavrUno
+from app.hardware.uno_backends import link_config
+from app.mapping.calibration import CalibrationError, FloorCalibration, Intrinsics
+from app.mapping.calibration_files import load_floor_calibration, load_intrinsics
+from app.mapping.frames import Pose2D
+from app.sim.robot import RobotParams, SimRobot
+from app.sim.setup import camera_model, renderer_from_config, sim_floor_calibration
+from app.sim.sim_uno import SimulatedUno
+from app.sim.world import World
+
+
+@dataclass
+class SimHandles:
+    """The simulated world behind the devices (for ground truth and fault injection)."""
+
+    world: World
+    robot: SimRobot
+    uno: SimulatedUno | None
+    """The pure-Python Uno (None when the firmware runs in simavr)."""
+    camera: SimCamera | None
+    T_plan_odom: Pose2D
+    """Where odometry's origin (the robot at start-up) lies in the floor plan."""
+
+
+@dataclass
+class Devices:
+    camera: Camera
+    port: str
+    make_link: Callable[[], UnoLink]
+    """Builds the serial link (inside the event loop)."""
+    calibration: FloorCalibration | None
+    calibration_problem: str
+    """Why ``calibration`` is None ("" when it is set)."""
+    intrinsics: Intrinsics | None = None
+    sim: SimHandles | None = None
+    description: dict[str, str] = field(default_factory=dict)
+    """What is connected, for the start-up banner and the status."""
+
+
+def robot_params(config: FloornavConfig) -> RobotParams:
+    drive = config.drive
+    return RobotParams(
+        wheel_base_m=drive.wheel_base_m,
+        wheel_radius_m=drive.wheel_radius_m,
+        max_wheel_speed_m_s=drive.max_wheel_speed_m_s,
+        deadband_pwm=drive.pwm_deadband,
+        ticks_per_rev=drive.ticks_per_rev,
+    )
+
+
+def load_calibration(config: FloornavConfig) -> tuple[FloorCalibration | None, str]:
+    """The floor calibration for a real camera, or (None, why not)."""
+    path = Path(config.mapping.floor_calibration_file)
+    size = (config.camera.width_px, config.camera.height_px)
+    if not path.is_file():
+        return None, (
+            f"no floor calibration at {path} (mapping.floor_calibration_file): run "
+            "`floornav calibrate floor IMAGE --pattern CxR --square-m S --out "
+            f"{path}` or calibrate from the dashboard"
+        )
+    try:
+        return load_floor_calibration(path, size), ""
+    except CalibrationError as exc:
+        return None, f"floor calibration {path} unusable: {exc}"
+
+
+@contextlib.contextmanager
+def open_devices(config: FloornavConfig) -> Iterator[Devices]:
+    """Open what ``config`` names; everything is closed again on exit.
+
+    Raises
+    ------
+    WorldError, CalibrationError, OSError : a sim world, intrinsics file or device
+        that cannot be opened at all (a camera or Uno that fails later is retried).
+    """
+    with contextlib.ExitStack() as stack:
+        cam_cfg = config.camera
+        intrinsics = (
+            load_intrinsics(Path(cam_cfg.intrinsics_file), (cam_cfg.width_px, cam_cfg.height_px))
+            if cam_cfg.intrinsics_file
+            else None
+        )
+        uses_sim = cam_cfg.source == "sim" or config.serial.backend in ("sim", "simavr")
+        sim: SimHandles | None = None
+        description: dict[str, str] = {}
+        if uses_sim:
+            renderer = renderer_from_config(config)
+            world = renderer.world
+            robot = SimRobot(world, robot_params(config))
+            robot.start()
+            stack.callback(robot.close)
+            sim = SimHandles(world, robot, None, None, world.start_pose)
+            description["world"] = world.name
+
+        camera: Camera
+        if cam_cfg.source == "sim":
+            assert sim is not None
+            sim_camera = SimCamera(renderer, lambda: sim.robot.pose, fps=cam_cfg.fps_hz)
+            sim.camera = sim_camera
+            camera = sim_camera
+            calibration, problem = sim_floor_calibration(camera_model(config)), ""
+            description["camera"] = f"simulated {cam_cfg.width_px}x{cam_cfg.height_px} @ {cam_cfg.fps_hz:g} fps"
+        elif cam_cfg.source == "device":
+            device: int | str = int(cam_cfg.device) if cam_cfg.device.isdigit() else cam_cfg.device
+            camera = OpenCVCamera(
+                device, width_px=cam_cfg.width_px, height_px=cam_cfg.height_px, fps=cam_cfg.fps_hz
+            )
+            calibration, problem = load_calibration(config)
+            description["camera"] = f"webcam {cam_cfg.device}"
+        else:
+            camera = ReplayCamera(cam_cfg.device, fps=cam_cfg.fps_hz, loop=True)
+            calibration, problem = load_calibration(config)
+            description["camera"] = f"replay {cam_cfg.device}"
+        stack.callback(camera.close)
+
+        backend = config.serial.backend
+        if backend == "sim":
+            assert sim is not None
+            uno = stack.enter_context(SimulatedUno(sim.robot))
+            sim.uno = uno
+            port = uno.port
+            description["serial"] = f"simulated Uno on {port}"
+        elif backend == "simavr":
+            assert sim is not None
+            firmware = stack.enter_context(SimavrUno(sim.robot))
+            port = firmware.port
+            description["serial"] = f"firmware in simavr on {port}"
+        else:
+            port = config.serial.port
+            description["serial"] = f"Uno on {port}"
+        timing = link_config(config.serial)
+        yield Devices(
+            camera=camera,
+            port=port,
+            make_link=lambda: UnoLink(port, config=timing),
+            calibration=calibration,
+            calibration_problem=problem,
+            intrinsics=intrinsics,
+            sim=sim,
+            description=description,
+        )

@@ -1,0 +1,104 @@
+"""The frozen messages the daemon's stages pass on, and the status it exposes.
+
+Every message carries ``capture_s``: the ``time.monotonic()`` at which the camera frame
+it derives from was captured, so any consumer knows its age.
+"""
+
+from __future__ import annotations
+
+import time
+from dataclasses import dataclass, field
+from enum import StrEnum
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.control.mux import Twist
+from app.mapping.frames import GroundGrid, Pose2D
+
+
+class State(StrEnum):
+    IDLE = "idle"
+    RUNNING = "running"  # exploring autonomously
+    TELEOP = "teleop"  # a person drives (over autonomy, if it was running)
+    ESTOPPED = "estopped"  # latched until reset
+    CALIBRATING = "calibrating"
+    FAULT = "fault"  # camera or Uno gone; motors zero, devices retried
+
+
+@dataclass(frozen=True)
+class FrameMsg:
+    image: NDArray[np.uint8] = field(repr=False)
+    capture_s: float
+    seq: int
+
+    def age_s(self, now_s: float | None = None) -> float:
+        return (time.monotonic() if now_s is None else now_s) - self.capture_s
+
+
+@dataclass(frozen=True)
+class FloorMsg:
+    """Perception's result for one frame (the image is kept for overlays)."""
+
+    seq: int
+    capture_s: float
+    done_s: float
+    image: NDArray[np.uint8] = field(repr=False)
+    floor_mask: NDArray[np.bool_] = field(repr=False)
+    method: str
+    timings_ms: dict[str, float]
+
+    def age_s(self, now_s: float | None = None) -> float:
+        return (time.monotonic() if now_s is None else now_s) - self.capture_s
+
+
+@dataclass(frozen=True)
+class MapMsg:
+    """The mapping stage's output for one frame: the map around the robot for steering.
+
+    Attributes
+    ----------
+    T_odom_robot : the pose at capture time
+    window_cells, window_grid : classes (-1/0/1) of the occupancy grid around the robot
+    path_xy : (n, 2) odometry-frame path to the frontier goal, or None
+    goal_xy, frontier_reason : the goal, or None and why there is none
+    clearance_ahead_m : free floor ahead of the robot's front edge in this frame's
+        bird's-eye view (robot-wide corridor)
+    """
+
+    seq: int
+    capture_s: float
+    done_s: float
+    T_odom_robot: Pose2D
+    window_cells: NDArray[np.int8] = field(repr=False)
+    window_grid: GroundGrid
+    path_xy: NDArray[np.float64] | None = field(repr=False)
+    goal_xy: tuple[float, float] | None
+    frontier_reason: str
+    clearance_ahead_m: float
+
+    def age_s(self, now_s: float | None = None) -> float:
+        return (time.monotonic() if now_s is None else now_s) - self.capture_s
+
+
+@dataclass(frozen=True)
+class DriveMsg:
+    """A command as sent to the Uno."""
+
+    twist: Twist
+    left_pwm: int
+    right_pwm: int
+    source: str
+    sent_s: float
+    origin_s: float
+    heading_rad: float | None = None
+    """Steering's chosen heading (robot frame) for autonomy commands."""
+
+
+@dataclass(frozen=True)
+class Transition:
+    time_s: float
+    wall_time: float
+    old: State
+    new: State
+    reason: str
