@@ -133,16 +133,25 @@ class Counters:
 
 
 def clearance_ahead_m(
-    patch: NDArray[np.uint8], patch_grid: GroundGrid, robot_radius_m: float, max_range_m: float
+    patch: NDArray[np.uint8],
+    patch_grid: GroundGrid,
+    robot_radius_m: float,
+    max_range_m: float,
+    *,
+    blocked_fraction: float = 0.25,
 ) -> float:
-    """Free floor ahead of the robot's front edge in a bird's-eye patch: along the
-    robot-wide corridor, the distance to the nearest cell that is not floor (unseen
-    cells count as not floor)."""
+    """Free floor ahead of the robot's front edge in a bird's-eye patch: the distance to
+    the nearest row of the robot-wide corridor in which at least ``blocked_fraction`` of
+    the cells are not floor (unseen counts as not floor). The fraction keeps a few
+    misclassified cells (a plank seam, a reflection) from stopping the robot; anything
+    a quarter of the robot's width wide does."""
     x, y = patch_grid.cell_centers()
-    corridor = np.abs(y) <= robot_radius_m
-    ahead = corridor & (x > 0)
-    blocked = ahead & (patch != FLOOR)
-    nearest = float(x[blocked].min()) if blocked.any() else max_range_m
+    corridor = np.abs(y[0]) <= robot_radius_m
+    rows_x = x[:, 0]
+    ahead = rows_x > 0
+    not_floor = patch[:, corridor] != FLOOR
+    blocked_rows = ahead & (not_floor.mean(axis=1) >= blocked_fraction)
+    nearest = float(rows_x[blocked_rows].min()) if blocked_rows.any() else max_range_m
     return max(0.0, nearest - patch_grid.cell_m / 2 - robot_radius_m)
 
 
