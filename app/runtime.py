@@ -249,6 +249,7 @@ class Runtime:
         self._stale_active = False
         self._clearance_active = False
         self._loop: asyncio.AbstractEventLoop | None = None
+        self._perception_config_changed = False
         if self.calibration is not None:
             self.mapper = GroundMapper(self.calibration, config.mapping, config.camera)
 
@@ -361,6 +362,20 @@ class Runtime:
             self._update_state("calibration finished")
             if was_autonomous and self.mapper is not None:
                 log.info("autonomy stays stopped after calibration; start again", extra={"event": "stop"})
+
+    def update_config(self, config: FloornavConfig) -> None:
+        """Apply a new configuration live. Only steering, drive limits, safety numbers and
+        perception settings take effect (perception rebuilds its segmenter before the next
+        frame); devices, mapping geometry and ports need a restart, and the API allows
+        changing only the live keys."""
+        self.config = config
+        self.steering.config = config.steering
+        self.steering.safety = config.safety
+        self.limiter.drive = config.drive
+        self.mux.teleop_timeout_s = config.safety.teleop_timeout_s
+        self.mux.autonomy_timeout_s = config.safety.autonomy_timeout_s
+        self._perception_config_changed = True
+        log.info("configuration updated", extra={"event": "config"})
 
     def request_shutdown(self, reason: str = "requested") -> None:
         if not self._shutdown.is_set():
@@ -493,6 +508,9 @@ class Runtime:
         reader = SlotReader(self.frames)
         while True:
             frame = await reader.next()
+            if self._perception_config_changed:
+                self._perception_config_changed = False
+                segmenter = FloorSegmenter(self.config.perception)
             start = self.clock()
             self.frame_ages.append(start - frame.capture_s)
             try:
