@@ -132,9 +132,16 @@ class MappingConfig(StrictModel):
     log_odds_occupied: Annotated[float, Field(gt=0.0, le=5.0)] = 0.85
     log_odds_min: Annotated[float, Field(ge=-20.0, lt=0.0)] = -2.0
     log_odds_max: Annotated[float, Field(gt=0.0, le=20.0)] = 3.5
+    free_threshold: Annotated[float, Field(ge=-20.0, le=0.0)] = -0.5
+    """A cell is free below this log-odds (default: two floor sightings)."""
+    occupied_threshold: Annotated[float, Field(ge=0.0, le=20.0)] = 0.5
+    """A cell is occupied above this log-odds (default: one sighting; raise it when
+    perception leaves speckles of false obstacles)."""
     obstacle_band_m: Annotated[float, Field(gt=0.0, le=0.5)] = 0.03
     evidence_half_life_s: Annotated[float, Field(gt=0.0, le=86400.0)] = 30.0
     frontier_min_cells: Annotated[int, Field(ge=1, le=10000)] = 4
+    frontier_exclude_radius_m: Annotated[float, Field(ge=0.0, le=5.0)] = 0.5
+    """Frontiers this close to the robot are ignored (the camera cannot see beside it)."""
     robot_radius_m: Annotated[float, Field(gt=0.0, le=2.0)] = 0.12
     inflation_radius_m: Annotated[float, Field(ge=0.0, le=2.0)] = 0.15
 
@@ -144,6 +151,10 @@ class MappingConfig(StrictModel):
             raise ValueError("birdseye_x_min_m must be smaller than birdseye_x_max_m")
         if self.birdseye_cell_m > self.grid_cell_m:
             raise ValueError("birdseye_cell_m must not exceed grid_cell_m")
+        if not self.log_odds_min <= self.free_threshold <= self.occupied_threshold <= self.log_odds_max:
+            raise ValueError(
+                "need log_odds_min <= free_threshold <= occupied_threshold <= log_odds_max"
+            )
         return self
 
 

@@ -60,6 +60,7 @@ def robot_params(config: FloornavConfig) -> RobotParams:
         max_wheel_speed_m_s=drive.max_wheel_speed_m_s,
         deadband_pwm=drive.pwm_deadband,
         ticks_per_rev=drive.ticks_per_rev,
+        radius_m=config.mapping.robot_radius_m,
     )
 
 

@@ -79,7 +79,6 @@ class CommandMux:
         self._teleop: _Input | None = None
         self._autonomy: _Input | None = None
         self._estop_reason: str | None = None
-        self._last_source = "idle"
         self.estops = 0
 
     # -- inputs -------------------------------------------------------------------------
@@ -143,24 +142,17 @@ class CommandMux:
 
     def output(self, now_s: float) -> MuxOutput:
         if self._estop_reason is not None:
-            return self._emit(MuxOutput(ZERO, "estop", now_s, now_s))
+            return MuxOutput(ZERO, "estop", now_s, now_s)
         teleop = self._live_teleop(now_s)
         if teleop is not None:
-            return self._emit(MuxOutput(teleop.twist, "teleop", teleop.stamp_s, teleop.origin_s))
+            return MuxOutput(teleop.twist, "teleop", teleop.stamp_s, teleop.origin_s)
         autonomy = self._autonomy
         if autonomy is not None and now_s - autonomy.stamp_s <= self.autonomy_timeout_s:
-            return self._emit(
-                MuxOutput(autonomy.twist, "autonomy", autonomy.stamp_s, autonomy.origin_s)
-            )
-        if self._last_source in ("teleop", "autonomy", "timeout"):
-            return self._emit(MuxOutput(ZERO, "timeout", now_s, now_s))
-        return self._emit(MuxOutput(ZERO, "idle", now_s, now_s))
-
-    def _emit(self, out: MuxOutput) -> MuxOutput:
-        # "timeout" persists until another input is live, so a caller that samples
-        # rarely still sees that the zero came from a timeout.
-        self._last_source = out.source
-        return out
+            return MuxOutput(autonomy.twist, "autonomy", autonomy.stamp_s, autonomy.origin_s)
+        if self._teleop is not None or self._autonomy is not None:
+            # An input was given and went quiet: say so with an explicit zero.
+            return MuxOutput(ZERO, "timeout", now_s, now_s)
+        return MuxOutput(ZERO, "idle", now_s, now_s)
 
     def _live_teleop(self, now_s: float) -> _Input | None:
         teleop = self._teleop

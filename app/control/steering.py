@@ -10,8 +10,10 @@
    nearest window; with no open window at all, the robot turns in place towards the
    desired heading (it is blocked).
 4. Speed: heading errors beyond ``turn_in_place_rad`` turn in place; otherwise the
-   forward speed falls with the heading error and with the free range ahead, from
-   ``slow_down_m`` down to zero at the minimum clearance.
+   forward speed falls with the heading error and with the free range ahead (ranges end
+   where the robot's body would touch), from ``slow_down_m`` above the minimum clearance
+   down to zero at it. An open window whose range is already within the clearance leads
+   nowhere: the robot turns towards the goal instead, to look.
 
 `Steering` keeps only the smoothing state; `polar_free_range` and `choose_heading` are
 pure functions on arrays.
@@ -244,12 +246,18 @@ class Steering:
         reason = "goal" if abs(wrap_angle(heading - desired)) < 1e-6 else "window"
         half_body = math.atan2(self.body_radius_m, max(cfg.min_advance_m, 1e-3))
         range_ahead = polar.range_towards(heading, half_body)
+        # Ranges already stop at the body (plus margin): what is left is clearance.
+        stop_at = self.safety.min_clearance_m
+        if range_ahead <= stop_at and abs(wrap_angle(heading - desired)) > cfg.window_margin_rad:
+            # The open window leads nowhere yet: turn to look towards the goal instead
+            # (turning in place is always possible for a round robot).
+            omega = math.copysign(cfg.turn_speed_rad_s, desired)
+            return self._finish(Twist(0.0, omega), desired, desired, polar, "blocked", range_ahead)
         omega = max(
             -cfg.turn_speed_rad_s, min(cfg.turn_speed_rad_s, cfg.heading_gain_per_s * heading)
         )
         if abs(heading) > cfg.turn_in_place_rad:
             return self._finish(Twist(0.0, omega), heading, desired, polar, reason, range_ahead)
-        stop_at = self.robot_radius_m + self.safety.min_clearance_m
         room = max(0.0, min(1.0, (range_ahead - stop_at) / cfg.slow_down_m))
         v = cfg.cruise_speed_m_s * room * math.cos(heading) ** 2
         return self._finish(Twist(v, omega), heading, desired, polar, reason, range_ahead)

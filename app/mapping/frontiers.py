@@ -62,6 +62,9 @@ class FrontierParams:
     robot_radius_m : float >= 0, radius of the footprint treated as known and traversable.
     size_penalty_m : float >= 0, see the module docstring's score.
     frontier_adjacency : 4 or 8, which unknown neighbours make a free cell a frontier.
+    exclude_radius_m : float >= 0, frontier cells within this distance of the robot are
+        ignored: the camera cannot see the floor right beside the robot, so turning to
+        look there never resolves them.
     """
 
     min_cluster_cells: int = 4
@@ -69,6 +72,7 @@ class FrontierParams:
     robot_radius_m: float = 0.12
     size_penalty_m: float = 0.0
     frontier_adjacency: int = 4
+    exclude_radius_m: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.min_cluster_cells, int) or self.min_cluster_cells < 1:
@@ -76,7 +80,7 @@ class FrontierParams:
                 f"FrontierParams.min_cluster_cells: must be an int >= 1, got"
                 f" {self.min_cluster_cells!r}"
             )
-        for name in ("inflation_radius_m", "robot_radius_m", "size_penalty_m"):
+        for name in ("inflation_radius_m", "robot_radius_m", "size_penalty_m", "exclude_radius_m"):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and 0 <= value < math.inf):
                 raise ValueError(f"FrontierParams.{name}: must be finite and >= 0, got {value!r}")
@@ -359,7 +363,10 @@ def find_frontiers(
     occupied = cells == OCCUPIED
     known = cells.copy()
     known[footprint & ~occupied] = FREE
-    frontier = frontier_mask(known, adjacency=params.frontier_adjacency, exclude=footprint)
+    excluded = footprint
+    if params.exclude_radius_m > params.robot_radius_m:
+        excluded = footprint | footprint_mask(grid, robot_xy, params.exclude_radius_m)
+    frontier = frontier_mask(known, adjacency=params.frontier_adjacency, exclude=excluded)
     inflated = inflate_obstacles(occupied, params.inflation_radius_m / cell_m)
     traversable = ((cells == FREE) & ~inflated) | (footprint & ~occupied)
 

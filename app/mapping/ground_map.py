@@ -34,6 +34,8 @@ def occupancy_params(mapping: MappingConfig) -> OccupancyParams:
         log_odds_occupied=mapping.log_odds_occupied,
         clamp_min=mapping.log_odds_min,
         clamp_max=mapping.log_odds_max,
+        free_threshold=mapping.free_threshold,
+        occupied_threshold=mapping.occupied_threshold,
         obstacle_band_m=mapping.obstacle_band_m,
         half_life_s=mapping.evidence_half_life_s,
         # The camera never sees under the robot; where the robot stands is floor.
@@ -46,6 +48,7 @@ def frontier_params(mapping: MappingConfig) -> FrontierParams:
         min_cluster_cells=mapping.frontier_min_cells,
         inflation_radius_m=mapping.inflation_radius_m,
         robot_radius_m=mapping.robot_radius_m,
+        exclude_radius_m=mapping.frontier_exclude_radius_m,
     )
 
 
