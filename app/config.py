@@ -140,6 +140,8 @@ class MappingConfig(StrictModel):
     obstacle_band_m: Annotated[float, Field(gt=0.0, le=0.5)] = 0.03
     evidence_half_life_s: Annotated[float, Field(gt=0.0, le=86400.0)] = 30.0
     frontier_min_cells: Annotated[int, Field(ge=1, le=10000)] = 4
+    frontier_size_penalty_m: Annotated[float, Field(ge=0.0, le=100.0)] = 0.0
+    """Trades path length for larger frontiers (see ``app.mapping.frontiers``)."""
     frontier_exclude_radius_m: Annotated[float, Field(ge=0.0, le=5.0)] = 0.5
     """Frontiers this close to the robot are ignored (the camera cannot see beside it)."""
     robot_radius_m: Annotated[float, Field(gt=0.0, le=2.0)] = 0.12

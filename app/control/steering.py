@@ -244,8 +244,8 @@ class Steering:
             omega = math.copysign(cfg.turn_speed_rad_s, desired)
             return self._finish(Twist(0.0, omega), desired, desired, polar, "blocked")
         reason = "goal" if abs(wrap_angle(heading - desired)) < 1e-6 else "window"
-        half_body = math.atan2(self.body_radius_m, max(cfg.min_advance_m, 1e-3))
-        range_ahead = polar.range_towards(heading, half_body)
+        # Obstacles are already grown by the body; the centre ray is the robot's path.
+        range_ahead = polar.range_towards(heading)
         # Ranges already stop at the body (plus margin): what is left is clearance.
         stop_at = self.safety.min_clearance_m
         if range_ahead <= stop_at and abs(wrap_angle(heading - desired)) > cfg.window_margin_rad:

@@ -49,6 +49,7 @@ def frontier_params(mapping: MappingConfig) -> FrontierParams:
         inflation_radius_m=mapping.inflation_radius_m,
         robot_radius_m=mapping.robot_radius_m,
         exclude_radius_m=mapping.frontier_exclude_radius_m,
+        size_penalty_m=mapping.frontier_size_penalty_m,
     )
 
 
