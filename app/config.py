@@ -242,6 +242,9 @@ class SteeringConfig(StrictModel):
     smoothing: Annotated[float, Field(ge=0.0, lt=1.0)] = 0.4
     """Exponential smoothing of successive commands (0: none)."""
     frontier_period_s: Annotated[float, Field(gt=0.0, le=10.0)] = 0.5
+    goal_patience_s: Annotated[float, Field(gt=0.0, le=600.0)] = 8.0
+    """A frontier goal still unreached after this long is given up (it cannot be seen
+    from anywhere the robot can go)."""
     local_window_m: Annotated[float, Field(ge=1.0, le=20.0)] = 6.0
     """Side of the map window around the robot that steering looks at."""
 

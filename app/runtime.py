@@ -217,6 +217,7 @@ class Runtime:
         self.frame_ages: deque[float] = deque(maxlen=100_000)
         self.latencies: deque[float] = deque(maxlen=100_000)
         self.counters = Counters()
+        self.steering_reasons: dict[str, int] = {}
         self.transitions: deque[Transition] = deque(maxlen=200)
         self.frames: LatestSlot[FrameMsg] = LatestSlot("frames")
         self.floors: LatestSlot[FloorMsg] = LatestSlot("floors")
@@ -224,6 +225,8 @@ class Runtime:
         self.decisions: LatestSlot[SteeringDecision] = LatestSlot("decisions")
         self.drives: LatestSlot[DriveMsg] = LatestSlot("drives")
         self.frontier: FrontierSearch | None = None
+        self.given_up_goals: list[tuple[float, float]] = []
+        self._goal_since: tuple[tuple[float, float], float] | None = None
         self.link: UnoLink | None = None
         self.mapper: GroundMapper | None = None
         self.calibration: FloorCalibration | None = devices.calibration
@@ -539,7 +542,7 @@ class Runtime:
     ) -> tuple[MapMsg, FrontierSearch | None]:
         """In the mapping thread: fuse the frame, maybe search frontiers, cut the window."""
         update = mapper.update(floor.floor_mask, pose, floor.capture_s)
-        search = mapper.frontiers(now_pose) if frontier_due else None
+        search = mapper.frontiers(now_pose, given_up_xy=self.given_up_goals) if frontier_due else None
         frontier = search if search is not None else self.frontier
         params = mapper.grid.params
         cells, window = map_window(
@@ -587,10 +590,30 @@ class Runtime:
                 continue  # recalibrated meanwhile: this map is gone
             if search is not None:
                 self.frontier = search
+                self._track_goal(search, start)
             done = self.clock()
             self.stages.add("mapping", done - start)
             self.counters.frames_mapped += 1
             self.maps.publish(msg)
+
+    def _track_goal(self, search: FrontierSearch, now: float) -> None:
+        """Give up on a goal that has stayed (within 0.3 m) the goal for
+        ``steering.goal_patience_s``: it cannot be seen from where the robot can go."""
+        goal = search.goal
+        if goal is None:
+            self._goal_since = None
+            return
+        if self._goal_since is None or math.dist(goal.xy, self._goal_since[0]) > 0.3:
+            self._goal_since = (goal.xy, now)
+            return
+        if now - self._goal_since[1] > self.config.steering.goal_patience_s:
+            self.given_up_goals.append(goal.xy)
+            log.info(
+                "frontier goal (%.2f, %.2f) given up after %.0f s",
+                goal.xy[0], goal.xy[1], self.config.steering.goal_patience_s,
+                extra={"event": "goal_given_up"},
+            )
+            self._goal_since = None
 
     async def _steering_stage(self) -> None:
         reader = SlotReader(self.maps)
@@ -603,6 +626,7 @@ class Runtime:
                 msg.window_cells, msg.window_grid, self.odometry.pose, msg.path_xy
             )
             self.stages.add("steering", self.clock() - start)
+            self.steering_reasons[decision.reason] = self.steering_reasons.get(decision.reason, 0) + 1
             self.decisions.publish(decision)
             self.mux.autonomy(decision.twist, self.clock(), origin_s=msg.capture_s)
             self._wake_drive.set()
@@ -855,6 +879,8 @@ class Runtime:
             "estops": self.mux.estops,
             "watchdog_stops": self.counters.watchdog_stops,
             "clearance_stops": self.counters.clearance_stops,
+            "steering_decisions": dict(self.steering_reasons),
+            "goals_given_up": len(self.given_up_goals),
             "faults": self.counters.faults,
             "commands_sent": self.counters.commands_sent,
             "send_errors": self.counters.send_errors,

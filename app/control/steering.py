@@ -5,8 +5,8 @@
    by the robot's radius, so a ray's range is how far the *robot* can go) or unknown.
 2. Open windows: runs of directions whose range is at least ``min_advance_m``.
 3. The desired heading points at the frontier path ``lookahead_m`` ahead (or, with no
-   goal, the robot scans in place). The chosen heading is the desired one if it lies in
-   an open window (``window_margin_rad`` inside its edges), else the nearest point of the
+   goal, the robot scans in place). The chosen heading is the desired one if that aim
+   point is reachable in a straight line or the direction lies in an open window (``window_margin_rad`` inside its edges), else the nearest point of the
    nearest window; with no open window at all, the robot turns in place towards the
    desired heading (it is blocked).
 4. Speed: heading errors beyond ``turn_in_place_rad`` turn in place; otherwise the
@@ -239,7 +239,12 @@ class Steering:
             - T_world_robot.theta_rad
         )
         self._scan_sign = 1.0 if desired >= 0 else -1.0
-        heading = choose_heading(windows, desired, cfg.window_margin_rad)
+        to_point = math.hypot(point[0] - T_world_robot.x_m, point[1] - T_world_robot.y_m)
+        heading: float | None
+        if polar.range_towards(desired) >= min(cfg.min_advance_m, to_point):
+            heading = desired  # the aim point itself is reachable in a straight line
+        else:
+            heading = choose_heading(windows, desired, cfg.window_margin_rad)
         if heading is None:
             omega = math.copysign(cfg.turn_speed_rad_s, desired)
             return self._finish(Twist(0.0, omega), desired, desired, polar, "blocked")

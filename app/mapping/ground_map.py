@@ -4,6 +4,7 @@ calibration and supplies poses and times."""
 
 from __future__ import annotations
 
+from collections.abc import Sequence
 from dataclasses import dataclass
 
 import numpy as np
@@ -12,9 +13,9 @@ from numpy.typing import NDArray
 from app.config import CameraConfig, MappingConfig
 from app.mapping.calibration import FloorCalibration
 from app.mapping.frames import FLOOR, GroundGrid, Pose2D
-from app.mapping.frontiers import FrontierParams, FrontierSearch, find_frontiers
+from app.mapping.frontiers import FrontierParams, FrontierSearch, find_frontiers, footprint_mask
 from app.mapping.ipm import BirdseyeMap, birdseye_floor_patch, build_birdseye_map
-from app.mapping.occupancy import OccupancyGrid, OccupancyParams, UpdateSummary
+from app.mapping.occupancy import FREE, UNKNOWN, OccupancyGrid, OccupancyParams, UpdateSummary
 
 
 def birdseye_grid(mapping: MappingConfig) -> GroundGrid:
@@ -110,10 +111,19 @@ class GroundMapper:
         )
         return MapUpdate(patch, summary)
 
-    def frontiers(self, T_world_robot: Pose2D) -> FrontierSearch:
-        return find_frontiers(
-            self.grid.classify(),
-            self.grid.world_grid,
-            (T_world_robot.x_m, T_world_robot.y_m),
-            self.frontier_params,
-        )
+    def frontiers(
+        self,
+        T_world_robot: Pose2D,
+        *,
+        given_up_xy: Sequence[tuple[float, float]] = (),
+        given_up_radius_m: float = 0.4,
+    ) -> FrontierSearch:
+        """Frontiers and the goal. Unknown cells within ``given_up_radius_m`` of a point in
+        ``given_up_xy`` are treated as known (goals the robot tried and failed to see,
+        e.g. floor under where it started), so they make no frontier."""
+        cells = self.grid.classify()
+        world = self.grid.world_grid
+        for xy in given_up_xy:
+            near = footprint_mask(world, xy, given_up_radius_m)
+            cells[near & (cells == UNKNOWN)] = FREE
+        return find_frontiers(cells, world, (T_world_robot.x_m, T_world_robot.y_m), self.frontier_params)
