@@ -92,6 +92,10 @@ class PerceptionConfig(StrictModel):
     compactness: Annotated[float, Field(gt=0.0, le=100.0)] = 10.0
     slic_max_iter: Annotated[int, Field(ge=1, le=50)] = 10
     flood_fill_tolerance: Annotated[float, Field(gt=0.0, le=100.0)] = 10.0
+    fill_gaps_px: Annotated[int, Field(ge=0, le=51)] = 0
+    """Morphological closing of the floor mask with a disk this wide (0: off, as in the
+    thesis). Closes seams between planks or tiles that a pixel method leaves as thin
+    not-floor lines (the map would hold them as walls); obstacles wider than this stay."""
     safe_zone: SafeZoneConfig = SafeZoneConfig()
     junction: JunctionConfig = JunctionConfig()
 

@@ -33,13 +33,13 @@ from collections import deque
 from collections.abc import Awaitable, Callable, Coroutine
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
-from typing import Any, TypeVar
+from typing import Any, Protocol, TypeVar
 
 import numpy as np
 from numpy.typing import NDArray
 
 from app.channels import LatestSlot, SlotReader
-from app.config import FloornavConfig
+from app.config import FloornavConfig, PerceptionConfig
 from app.control.kinematics import RateLimiter, WheelOdometry, twist_to_pwm
 from app.control.mux import CommandMux, MuxOutput, TeleopRefused, Twist
 from app.control.steering import Steering, SteeringDecision
@@ -53,7 +53,7 @@ from app.mapping.ground_map import GroundMapper
 from app.mapping.occupancy import classify_log_odds
 from app.messages import DriveMsg, FloorMsg, FrameMsg, MapMsg, State, Transition
 from app.perception.image_checks import ImageError
-from app.perception.pipeline import FloorSegmenter
+from app.perception.pipeline import FloorResult, FloorSegmenter
 from app.perception.safe_zone import SafeZoneError
 
 log = logging.getLogger("floornav.runtime")
@@ -62,6 +62,12 @@ T = TypeVar("T")
 
 CAPTURE_POLL_S = 0.002
 """How often capture looks for a new frame (the cameras publish from their threads)."""
+
+
+class Segmenter(Protocol):
+    """What perception needs (`FloorSegmenter`; tests pass slow or failing ones)."""
+
+    def segment(self, image: NDArray[np.uint8]) -> FloorResult: ...
 
 
 class CommandRefused(Exception):
@@ -200,10 +206,13 @@ class Runtime:
         devices: Devices,
         *,
         clock: Callable[[], float] = time.monotonic,
+        segmenter_factory: Callable[[PerceptionConfig], Segmenter] = FloorSegmenter,
     ) -> None:
         self.config = config
         self.devices = devices
         self.clock = clock
+        self.segmenter_factory = segmenter_factory
+        self.intrinsics = devices.intrinsics
         self.mux = CommandMux(
             teleop_timeout_s=config.safety.teleop_timeout_s,
             autonomy_timeout_s=config.safety.autonomy_timeout_s,
@@ -418,7 +427,8 @@ class Runtime:
             except* _Shutdown:
                 pass
         except BaseException as exc:
-            self.crash = f"{type(exc).__name__}: {exc}"
+            if self.crash is None and not isinstance(exc, asyncio.CancelledError):
+                self.crash = f"{type(exc).__name__}: {exc}"
             raise
         finally:
             self.ended_s = self.clock()
@@ -451,7 +461,8 @@ class Runtime:
             await coro
         except (_Shutdown, asyncio.CancelledError):
             raise
-        except Exception:
+        except Exception as exc:
+            self.crash = f"stage {name}: {type(exc).__name__}: {exc}"
             log.exception("stage %s crashed; stopping", name, extra={"event": "crash", "stage": name})
             # Zero the motors before the task group unwinds the other stages.
             self._autonomous = False
@@ -507,13 +518,13 @@ class Runtime:
             await asyncio.sleep(CAPTURE_POLL_S)
 
     async def _perception_stage(self) -> None:
-        segmenter = FloorSegmenter(self.config.perception)
+        segmenter = self.segmenter_factory(self.config.perception)
         reader = SlotReader(self.frames)
         while True:
             frame = await reader.next()
             if self._perception_config_changed:
                 self._perception_config_changed = False
-                segmenter = FloorSegmenter(self.config.perception)
+                segmenter = self.segmenter_factory(self.config.perception)
             start = self.clock()
             self.frame_ages.append(start - frame.capture_s)
             try:
@@ -717,7 +728,9 @@ class Runtime:
     def _gate(self, out: MuxOutput, now: float) -> MuxOutput:
         """The host's stop layers on top of the mux."""
         safety = self.config.safety
-        if out.source == "autonomy":
+        if out.source == "autonomy" or (self._autonomous and out.source == "timeout"):
+            # Judged on capture times, so it trips before the mux's own timeout on the
+            # (later) steering time would: the stop is counted as what it is.
             floor, map_msg = self.floors.peek(), self.maps.peek()
             stale = (
                 not self._autonomous
@@ -895,5 +908,6 @@ class Runtime:
             "final_state": self.state.value,
             "shutdown_reason": self._shutdown_reason or None,
             "crash": self.crash,
+            "final_motor_pwm": list(sim.uno.pwm) if sim is not None and sim.uno is not None else None,
             "pid": os.getpid(),
         }

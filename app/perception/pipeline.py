@@ -20,8 +20,9 @@ from __future__ import annotations
 
 import time
 from collections.abc import Callable
-from dataclasses import dataclass, field
+from dataclasses import dataclass, field, replace
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -149,7 +150,17 @@ class FloorSegmenter:
             The safe zone does not fit the image.
         """
         bgr = check_bgr_image(image)
-        return METHODS[self.method](self, bgr)
+        result = METHODS[self.method](self, bgr)
+        gap = self.config.fill_gaps_px
+        if gap > 0:
+            start = time.perf_counter()
+            kernel = cv2.getStructuringElement(cv2.MORPH_ELLIPSE, (gap, gap))
+            closed = cv2.morphologyEx(result.floor_mask.view(np.uint8), cv2.MORPH_CLOSE, kernel)
+            timings = dict(result.timings_ms)
+            timings["fill_gaps"] = (time.perf_counter() - start) * 1000
+            timings["total"] = timings.get("total", 0.0) + timings["fill_gaps"]
+            result = replace(result, floor_mask=closed.astype(bool), timings_ms=timings)
+        return result
 
     # -- shared front end ------------------------------------------------------------
 

@@ -1,0 +1,75 @@
+"""`floornav run` as a user runs it: bad config fails before any device, SIGTERM ends
+with the motors at zero and a report, --duration-s writes the report's fields."""
+
+from __future__ import annotations
+
+import json
+import os
+import signal
+import subprocess
+import sys
+import time
+from pathlib import Path
+
+import pytest
+
+PROJECT = Path(__file__).resolve().parents[2]
+
+
+def floornav(*args: str, env: dict[str, str] | None = None, **kwargs: object) -> subprocess.Popen[str]:
+    return subprocess.Popen(
+        [sys.executable, "-m", "app", *args],
+        cwd=PROJECT,
+        env={**os.environ, **(env or {})},
+        stdout=subprocess.PIPE,
+        stderr=subprocess.PIPE,
+        text=True,
+        **kwargs,  # type: ignore[call-overload]
+    )
+
+
+def test_invalid_config_exits_before_touching_hardware(tmp_path: Path) -> None:
+    bad = tmp_path / "bad.toml"
+    bad.write_text('[drive]\nmax_linear_speed_m_s = 9.0\n[serial]\nbackend = "sim"\nbogus = 1\n')
+    proc = floornav("run", "--config", str(bad), "--duration-s", "5")
+    out, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2
+    assert "drive.max_linear_speed_m_s" in err and "serial.bogus" in err
+    assert "floornav daemon" not in out  # no banner: nothing was opened
+
+
+@pytest.mark.sim
+def test_sigterm_stops_the_motors_and_writes_the_report(tmp_path: Path) -> None:
+    report = tmp_path / "r.json"
+    proc = floornav(
+        "run", "--duration-s", "120", "--report", str(report),
+        env={"FLOORNAV_RUNTIME__LOG_JSON": "true"},
+    )
+    assert proc.stderr is not None
+    deadline = time.monotonic() + 60
+    started = False
+    lines = []
+    while time.monotonic() < deadline:
+        line = proc.stderr.readline()
+        if not line:
+            break
+        lines.append(line)
+        if json.loads(line).get("event") == "start":
+            started = True
+            break
+    assert started, "".join(lines)
+    time.sleep(1.5)  # let it drive
+    proc.send_signal(signal.SIGTERM)
+    out, err = proc.communicate(timeout=20)
+    assert proc.returncode == 0, err
+    events = [json.loads(line).get("event") for line in err.splitlines() if line.startswith("{")]
+    assert "motors_zero" in events and "shutdown" in events
+    assert "floornav daemon" in out and "simulated Uno" in out  # the banner
+    data = json.loads(report.read_text())
+    assert data["shutdown_reason"] == "SIGTERM"
+    assert data["final_motor_pwm"] == [0, 0]
+    assert data["collisions"] == 0
+    for key in ("frames", "fps", "latency_ms", "stage_ms", "coverage_ratio", "map_iou",
+                "distance_m", "estops", "watchdog_stops", "rss_mb"):
+        assert key in data
+    assert set(data["latency_ms"]) >= {"p50", "p95", "max"}

@@ -1,0 +1,235 @@
+"""The daemon's runtime on the simulator: states, stop layers, faults, shutdown."""
+
+from __future__ import annotations
+
+import asyncio
+import threading
+import time
+
+import numpy as np
+import pytest
+
+from app.config import PerceptionConfig
+from app.devices import Devices
+from app.hardware.interfaces import CameraFrame, DeviceState, DeviceStatus
+from app.hardware.protocol import MsgType
+from app.messages import State
+from app.perception.pipeline import FloorResult, FloorSegmenter
+from app.runtime import CommandRefused
+
+from .conftest import running, sim_config, wait_for
+
+
+def moved_m(devices: Devices, start: tuple[float, float]) -> float:
+    assert devices.sim is not None
+    pose = devices.sim.robot.pose
+    return float(np.hypot(pose.x_m - start[0], pose.y_m - start[1]))
+
+
+async def test_autonomy_drives_and_shutdown_stops_the_motors() -> None:
+    async with running() as (rt, task):
+        sim = rt.devices.sim
+        assert sim is not None and sim.uno is not None
+        start = (sim.robot.pose.x_m, sim.robot.pose.y_m, sim.robot.pose.theta_rad)
+        await rt.start()
+        assert rt.state is State.RUNNING
+        await wait_for(lambda: sim.uno.pwm != (0, 0), 5.0, "the motors to turn")
+        await asyncio.sleep(2.0)
+        pose = sim.robot.pose
+        assert (pose.x_m, pose.y_m, pose.theta_rad) != start
+        assert rt.latencies, "autonomy commands carry their capture-to-command latency"
+        uno = sim.uno
+    await asyncio.sleep(0)
+    assert task.done() and task.exception() is None
+    assert uno.pwm == (0, 0)
+    assert uno.count(MsgType.STOP) >= 1
+    assert rt.link is not None and rt.link.state is DeviceState.DISCONNECTED
+    assert sim.robot.collisions == 0
+
+
+async def test_estop_latches_and_refuses_until_reset() -> None:
+    async with running() as (rt, _):
+        sim = rt.devices.sim
+        assert sim is not None and sim.uno is not None
+        await rt.start()
+        await wait_for(lambda: sim.uno.pwm != (0, 0), 5.0, "the motors to turn")
+        rt.estop("test")
+        await wait_for(lambda: sim.uno.pwm == (0, 0), 0.5, "e-stop to zero the motors")
+        assert rt.state is State.ESTOPPED
+        with pytest.raises(CommandRefused, match="e-stop"):
+            await rt.start()
+        with pytest.raises(CommandRefused, match="e-stop"):
+            rt.teleop("alice", 0.2, 0.0)
+        await asyncio.sleep(0.3)
+        assert sim.uno.pwm == (0, 0)
+        assert rt.reset_estop() is True
+        assert rt.state is State.IDLE  # autonomy does not resume by itself
+        assert rt.mux.estops == 1
+
+
+async def test_teleop_overrides_then_times_out_to_an_explicit_zero() -> None:
+    async with running() as (rt, _):
+        sim = rt.devices.sim
+        assert sim is not None and sim.uno is not None
+        rt.teleop("alice", 0.2, 0.0)
+        assert rt.state is State.TELEOP
+        await wait_for(lambda: sim.uno.pwm[0] > 0 and sim.uno.pwm[1] > 0, 1.0, "teleop forward")
+        with pytest.raises(CommandRefused, match="alice"):
+            rt.teleop("bob", 0.0, 1.0)
+        sent = time.monotonic()
+        await wait_for(lambda: sim.uno.pwm == (0, 0), 1.5, "the teleop timeout's zero")
+        # 0.5 s teleop timeout, then the next control tick sends the zero.
+        assert 0.4 < time.monotonic() - sent < 0.9
+        drive = rt.drives.peek()
+        assert drive is not None and drive.source == "timeout"
+
+
+class StallingSegmenter:
+    """Segments normally until ``stall`` is set, then takes 2 s per frame (a hung stage)."""
+
+    def __init__(self, config: PerceptionConfig) -> None:
+        self.inner = FloorSegmenter(config)
+        self.stall = threading.Event()
+
+    def segment(self, image: np.ndarray) -> FloorResult:
+        if self.stall.is_set():
+            time.sleep(2.0)
+        return self.inner.segment(image)
+
+
+async def test_stale_perception_stops_the_robot() -> None:
+    made: list[StallingSegmenter] = []
+
+    def factory(config: PerceptionConfig) -> StallingSegmenter:
+        made.append(StallingSegmenter(config))
+        return made[-1]
+
+    async with running(segmenter_factory=factory) as (rt, _):
+        sim = rt.devices.sim
+        assert sim is not None and sim.uno is not None
+        await rt.start()
+        rt.teleop("t", 0.0, 1.0)  # make sure the motors turn, then hand back to autonomy
+        rt.release_teleop("t")
+        await wait_for(lambda: sim.uno.pwm != (0, 0), 5.0, "the motors to turn")
+        made[0].stall.set()
+        stalled = time.monotonic()
+        await wait_for(lambda: sim.uno.pwm == (0, 0), 1.5, "the stale-perception stop")
+        # perception_max_age_s = 0.5 plus at most a frame and a control tick.
+        assert time.monotonic() - stalled < 0.8
+        assert rt.counters.watchdog_stops >= 1
+        made[0].stall.clear()
+
+
+class CrashingSegmenter(FloorSegmenter):
+    crash = threading.Event()
+
+    def segment(self, image: np.ndarray) -> FloorResult:
+        if self.crash.is_set():
+            raise RuntimeError("injected perception bug")
+        return super().segment(image)
+
+
+async def test_a_crashing_stage_stops_the_motors_and_ends_the_run() -> None:
+    CrashingSegmenter.crash.clear()
+    async with running(segmenter_factory=CrashingSegmenter) as (rt, task):
+        sim = rt.devices.sim
+        assert sim is not None and sim.uno is not None
+        rt.teleop("t", 0.2, 0.0)
+        await wait_for(lambda: sim.uno.pwm != (0, 0), 2.0, "teleop to drive")
+        CrashingSegmenter.crash.set()
+        await asyncio.wait({task}, timeout=5.0)
+        assert task.done()
+        with pytest.raises(ExceptionGroup) as info:
+            task.result()
+        assert info.group_contains(RuntimeError, match="injected")
+        assert sim.uno.pwm == (0, 0)
+        assert sim.uno.count(MsgType.STOP) >= 1
+        assert rt.crash is not None and "injected" in rt.crash
+    CrashingSegmenter.crash.clear()
+
+
+async def test_missing_calibration_refuses_autonomy_but_allows_teleop() -> None:
+    def no_calibration(devices: Devices) -> None:
+        devices.calibration = None
+        devices.calibration_problem = "no floor calibration at calibration/floor.json"
+
+    config = sim_config()
+    from app.devices import open_devices
+    from app.runtime import Runtime
+
+    with open_devices(config) as devices:
+        no_calibration(devices)
+        rt = Runtime(config, devices)
+        task = asyncio.create_task(rt.run(install_signals=False))
+        try:
+            await wait_for(lambda: rt.floors.peek() is not None, 20.0, "perception")
+            with pytest.raises(CommandRefused, match="calibration"):
+                await rt.start()
+            assert rt.status()["calibration_problem"].startswith("no floor calibration")
+            sim = devices.sim
+            assert sim is not None and sim.uno is not None
+            rt.teleop("alice", 0.0, 1.0)
+            await wait_for(lambda: sim.uno.pwm != (0, 0), 1.0, "teleop to drive")
+        finally:
+            rt.request_shutdown()
+            await asyncio.wait_for(task, 10.0)
+
+
+class DyingCamera:
+    """Wraps a camera; while ``dead`` it has no frames and reports FAILED."""
+
+    def __init__(self, inner: object) -> None:
+        self.inner = inner
+        self.dead = False
+
+    def open(self) -> None:
+        self.inner.open()  # type: ignore[attr-defined]
+
+    def close(self) -> None:
+        self.inner.close()  # type: ignore[attr-defined]
+
+    def latest(self, max_age_s: float) -> CameraFrame | None:
+        return None if self.dead else self.inner.latest(max_age_s)  # type: ignore[attr-defined]
+
+    def status(self) -> DeviceStatus:
+        if self.dead:
+            return DeviceStatus(DeviceState.FAILED, "unplugged (test)")
+        return self.inner.status()  # type: ignore[attr-defined,no-any-return]
+
+
+async def test_camera_lost_mid_run_faults_stops_and_recovers_to_idle() -> None:
+    cameras: list[DyingCamera] = []
+
+    def wrap(devices: Devices) -> None:
+        cameras.append(DyingCamera(devices.camera))
+        devices.camera = cameras[0]  # type: ignore[assignment]
+
+    async with running(prepare=wrap) as (rt, _):
+        sim = rt.devices.sim
+        assert sim is not None and sim.uno is not None
+        await rt.start()
+        await wait_for(lambda: sim.uno.pwm != (0, 0), 5.0, "the motors to turn")
+        cameras[0].dead = True
+        await wait_for(lambda: rt.state is State.FAULT, 1.5, "the fault state")
+        await wait_for(lambda: sim.uno.pwm == (0, 0), 1.0, "motors zero")
+        assert "camera" in (rt.status()["fault"] or "")
+        cameras[0].dead = False
+        await wait_for(lambda: rt.state is State.IDLE, 2.0, "recovery")
+        assert not rt.status()["autonomous"]  # a person restarts autonomy
+
+
+async def test_serial_unplugged_mid_run_faults_and_reconnects() -> None:
+    async with running() as (rt, _):
+        sim = rt.devices.sim
+        assert sim is not None and sim.uno is not None
+        await rt.start()
+        await wait_for(lambda: sim.uno.pwm != (0, 0), 5.0, "the motors to turn")
+        sim.uno.unplug()
+        await wait_for(lambda: rt.state is State.FAULT, 2.0, "the fault state")
+        assert "Uno" in (rt.status()["fault"] or "")
+        sim.uno.replug()
+        await wait_for(lambda: rt.state is State.IDLE, 5.0, "reconnection")
+        assert rt.link is not None and rt.link.stats.reconnects >= 1
+        # The link never re-arms the motors by itself after a reconnect.
+        await asyncio.sleep(0.3)
+        assert sim.uno.pwm == (0, 0)
