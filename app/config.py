@@ -146,6 +146,8 @@ class MappingConfig(StrictModel):
     frontier_min_cells: Annotated[int, Field(ge=1, le=10000)] = 4
     frontier_size_penalty_m: Annotated[float, Field(ge=0.0, le=100.0)] = 0.0
     """Trades path length for larger frontiers (see ``app.mapping.frontiers``)."""
+    frontier_turn_penalty_m_per_rad: Annotated[float, Field(ge=0.0, le=10.0)] = 0.0
+    """Adds this much to a frontier's path length per radian it lies off the heading."""
     frontier_exclude_radius_m: Annotated[float, Field(ge=0.0, le=5.0)] = 0.5
     """Frontiers this close to the robot are ignored (the camera cannot see beside it)."""
     robot_radius_m: Annotated[float, Field(gt=0.0, le=2.0)] = 0.12
@@ -157,7 +159,12 @@ class MappingConfig(StrictModel):
             raise ValueError("birdseye_x_min_m must be smaller than birdseye_x_max_m")
         if self.birdseye_cell_m > self.grid_cell_m:
             raise ValueError("birdseye_cell_m must not exceed grid_cell_m")
-        if not self.log_odds_min <= self.free_threshold <= self.occupied_threshold <= self.log_odds_max:
+        if (
+            not self.log_odds_min
+            <= self.free_threshold
+            <= self.occupied_threshold
+            <= self.log_odds_max
+        ):
             raise ValueError(
                 "need log_odds_min <= free_threshold <= occupied_threshold <= log_odds_max"
             )

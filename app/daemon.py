@@ -28,7 +28,8 @@ def banner(config: FloornavConfig, config_source: str, description: dict[str, st
         f"  method   {config.perception.method}",
         f"  web      http://{web.host}:{web.port}/  (API /api, metrics /metrics)",
         f"  viser    port {config.viser.port} (localhost)" if config.viser.enabled else "",
-        f"  autonomy {'starts at once' if config.runtime.autostart else 'waits for POST /api/start'}",
+        "  autonomy "
+        + ("starts at once" if config.runtime.autostart else "waits for POST /api/start"),
     ]
     return "\n".join(line for line in lines if line)
 

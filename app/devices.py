@@ -109,13 +109,16 @@ def open_devices(config: FloornavConfig) -> Iterator[Devices]:
             description["world"] = world.name
 
         camera: Camera
+        calibration: FloorCalibration | None
         if cam_cfg.source == "sim":
             assert sim is not None
             sim_camera = SimCamera(renderer, lambda: sim.robot.pose, fps=cam_cfg.fps_hz)
             sim.camera = sim_camera
             camera = sim_camera
             calibration, problem = sim_floor_calibration(camera_model(config)), ""
-            description["camera"] = f"simulated {cam_cfg.width_px}x{cam_cfg.height_px} @ {cam_cfg.fps_hz:g} fps"
+            description["camera"] = (
+                f"simulated {cam_cfg.width_px}x{cam_cfg.height_px} @ {cam_cfg.fps_hz:g} fps"
+            )
         elif cam_cfg.source == "device":
             device: int | str = int(cam_cfg.device) if cam_cfg.device.isdigit() else cam_cfg.device
             camera = OpenCVCamera(

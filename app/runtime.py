@@ -41,7 +41,7 @@ from numpy.typing import NDArray
 from app.channels import LatestSlot, SlotReader
 from app.config import FloornavConfig, PerceptionConfig
 from app.control.kinematics import RateLimiter, WheelOdometry, twist_to_pwm
-from app.control.mux import CommandMux, MuxOutput, TeleopRefused, Twist
+from app.control.mux import CommandMux, MuxOutput, TeleopRefusedError, Twist
 from app.control.steering import Steering, SteeringDecision
 from app.devices import Devices
 from app.hardware.interfaces import DeviceState
@@ -70,12 +70,12 @@ class Segmenter(Protocol):
     def segment(self, image: NDArray[np.uint8]) -> FloorResult: ...
 
 
-class CommandRefused(Exception):
+class CommandRefusedError(Exception):
     """A start/teleop/calibrate request that the current state does not allow; the
     message says why (the API turns it into a 409)."""
 
 
-class _Shutdown(Exception):
+class _ShutdownRequested(Exception):  # noqa: N818 (a signal, not an error)
     """Raised inside the task group to end the run."""
 
 
@@ -97,7 +97,7 @@ def percentiles_ms(values_s: Any) -> dict[str, float | None]:
         return {"p50": None, "p95": None, "max": None, "n": 0}
 
     def pick(q: float) -> float:
-        return round(data[min(len(data) - 1, int(round(q * (len(data) - 1))))] * 1000, 2)
+        return round(float(data[min(len(data) - 1, round(q * (len(data) - 1)))]) * 1000, 2)
 
     return {"p50": pick(0.5), "p95": pick(0.95), "max": round(data[-1] * 1000, 2), "n": len(data)}
 
@@ -171,7 +171,7 @@ def map_window(
     occupied_threshold: float,
 ) -> tuple[NDArray[np.int8], GroundGrid]:
     """Classes of the square of ``side_m`` around ``center_xy`` (clipped to the grid)."""
-    half = int(math.ceil(side_m / 2 / grid.cell_m))
+    half = math.ceil(side_m / 2 / grid.cell_m)
     row, col = (int(v) for v in grid.cell_of(np.array([center_xy]))[0])
     r0, r1 = max(0, row - half), min(grid.rows, row + half + 1)
     c0, c1 = max(0, col - half), min(grid.cols, col + half + 1)
@@ -181,7 +181,11 @@ def map_window(
         log_odds[r0:r1, c0:c1], free_threshold=free_threshold, occupied_threshold=occupied_threshold
     )
     window = GroundGrid(
-        grid.x_max_m - r0 * grid.cell_m, grid.y_max_m - c0 * grid.cell_m, grid.cell_m, r1 - r0, c1 - c0
+        grid.x_max_m - r0 * grid.cell_m,
+        grid.y_max_m - c0 * grid.cell_m,
+        grid.cell_m,
+        r1 - r0,
+        c1 - c0,
     )
     return cells, window
 
@@ -268,15 +272,17 @@ class Runtime:
     # -- the API's verbs ------------------------------------------------------------------
 
     async def start(self) -> None:
-        """Start exploring. Raises CommandRefused saying why it cannot."""
+        """Start exploring. Raises CommandRefusedError saying why it cannot."""
         if self.mux.estopped:
-            raise CommandRefused("e-stop is latched: reset it first")
+            raise CommandRefusedError("e-stop is latched: reset it first")
         if self._calibrating:
-            raise CommandRefused("calibration in progress")
+            raise CommandRefusedError("calibration in progress")
         if self.mapper is None:
-            raise CommandRefused(f"autonomy needs a floor calibration: {self.calibration_problem}")
+            raise CommandRefusedError(
+                f"autonomy needs a floor calibration: {self.calibration_problem}"
+            )
         if self._fault_reason:
-            raise CommandRefused(f"devices not ready: {self._fault_reason}")
+            raise CommandRefusedError(f"devices not ready: {self._fault_reason}")
         if not self._autonomous:
             self._autonomous = True
             self.steering.reset()
@@ -308,21 +314,23 @@ class Runtime:
         self._update_state("e-stop reset")
         return was
 
-    def teleop(self, driver: str, v_m_s: float, omega_rad_s: float, *, take_over: bool = False) -> None:
+    def teleop(
+        self, driver: str, v_m_s: float, omega_rad_s: float, *, take_over: bool = False
+    ) -> None:
         """Drive by hand for ``safety.teleop_timeout_s`` (send again to keep going).
 
-        Raises CommandRefused (e-stopped, calibrating, no Uno, or another driver holds
+        Raises CommandRefusedError (e-stopped, calibrating, no Uno, or another driver holds
         teleop and this one does not take over)."""
         if self.mux.estopped:
-            raise CommandRefused("e-stop is latched: reset it first")
+            raise CommandRefusedError("e-stop is latched: reset it first")
         if self._calibrating:
-            raise CommandRefused("calibration in progress")
+            raise CommandRefusedError("calibration in progress")
         if self.link is None or self.link.state is not DeviceState.CONNECTED:
-            raise CommandRefused("the Uno is not connected")
+            raise CommandRefusedError("the Uno is not connected")
         try:
             self.mux.teleop(driver, Twist(v_m_s, omega_rad_s), self.clock(), take_over=take_over)
-        except TeleopRefused as exc:
-            raise CommandRefused(str(exc)) from exc
+        except TeleopRefusedError as exc:
+            raise CommandRefusedError(str(exc)) from exc
         self._update_state(f"teleop by {driver}")
         self._wake_drive.set()
 
@@ -332,16 +340,18 @@ class Runtime:
         self._wake_drive.set()
 
     async def calibrate_with(
-        self, fit: Callable[[NDArray[np.uint8]], FloorCalibration], save: Callable[[FloorCalibration], None] | None = None
+        self,
+        fit: Callable[[NDArray[np.uint8]], FloorCalibration],
+        save: Callable[[FloorCalibration], None] | None = None,
     ) -> FloorCalibration:
         """Fit a new floor calibration on the newest camera frame with ``fit`` (run in a
         thread; it raises CalibrationError with the reason), save it with ``save``, and
         rebuild the mapper (the map starts afresh). Autonomy stops while calibrating."""
         if self.mux.estopped:
-            raise CommandRefused("e-stop is latched: reset it first")
+            raise CommandRefusedError("e-stop is latched: reset it first")
         frame = self.frames.peek()
         if frame is None or frame.age_s(self.clock()) > self.config.safety.camera_max_age_s:
-            raise CommandRefused("no recent camera frame to calibrate on")
+            raise CommandRefusedError("no recent camera frame to calibrate on")
         was_autonomous = self._autonomous
         self._autonomous = False
         self.mux.clear_autonomy()
@@ -373,7 +383,9 @@ class Runtime:
             self._calibrating = False
             self._update_state("calibration finished")
             if was_autonomous and self.mapper is not None:
-                log.info("autonomy stays stopped after calibration; start again", extra={"event": "stop"})
+                log.info(
+                    "autonomy stays stopped after calibration; start again", extra={"event": "stop"}
+                )
 
     def update_config(self, config: FloornavConfig) -> None:
         """Apply a new configuration live. Only steering, drive limits, safety numbers and
@@ -424,7 +436,7 @@ class Runtime:
                     if self.config.runtime.autostart:
                         group.create_task(self._guard("autostart", self._autostart()))
                     group.create_task(self._until_shutdown(duration_s), name="shutdown")
-            except* _Shutdown:
+            except* _ShutdownRequested:
                 pass
         except BaseException as exc:
             if self.crash is None and not isinstance(exc, asyncio.CancelledError):
@@ -439,7 +451,7 @@ class Runtime:
 
     def _install_signals(self) -> list[int]:
         assert self._loop is not None
-        installed = []
+        installed: list[int] = []
         for sig in (signal.SIGTERM, signal.SIGINT):
             try:
                 self._loop.add_signal_handler(sig, self.request_shutdown, signal.Signals(sig).name)
@@ -454,16 +466,18 @@ class Runtime:
         except TimeoutError:
             self._shutdown_reason = f"duration {duration_s:g} s reached"
             log.info("run duration reached", extra={"event": "shutdown", "duration_s": duration_s})
-        raise _Shutdown(self._shutdown_reason)
+        raise _ShutdownRequested(self._shutdown_reason)
 
     async def _guard(self, name: str, coro: Awaitable[None]) -> None:
         try:
             await coro
-        except (_Shutdown, asyncio.CancelledError):
+        except (_ShutdownRequested, asyncio.CancelledError):
             raise
         except Exception as exc:
             self.crash = f"stage {name}: {type(exc).__name__}: {exc}"
-            log.exception("stage %s crashed; stopping", name, extra={"event": "crash", "stage": name})
+            log.exception(
+                "stage %s crashed; stopping", name, extra={"event": "crash", "stage": name}
+            )
             # Zero the motors before the task group unwinds the other stages.
             self._autonomous = False
             self.mux.estop(f"stage {name} crashed")
@@ -473,10 +487,18 @@ class Runtime:
         self._autonomous = False
         link = self.link
         if link is not None:
-            with contextlib.suppress(LinkError, OSError):
-                await link.stop_motors()
-            await link.stop()  # sends STOP when connected, closes the port
-            log.info("motors stopped, port closed", extra={"event": "motors_zero"})
+            # Bounded: shutdown must finish even if the device hangs (the firmware's
+            # deadman stops the motors 250 ms after the last command anyway).
+            with contextlib.suppress(LinkError, OSError, TimeoutError):
+                await asyncio.wait_for(link.stop_motors(), timeout=1.0)
+            try:
+                await asyncio.wait_for(link.stop(), timeout=3.0)  # STOP, then close
+                log.info("motors stopped, port closed", extra={"event": "motors_zero"})
+            except TimeoutError:
+                log.error(
+                    "the Uno link did not close in 3 s; the firmware deadman stops the motors",
+                    extra={"event": "motors_zero_timeout"},
+                )
         self.devices.camera.close()
         self._perception_pool.shutdown(wait=True, cancel_futures=True)
         self._mapping_pool.shutdown(wait=True, cancel_futures=True)
@@ -495,7 +517,11 @@ class Runtime:
                 await self.start()
                 return
             await asyncio.sleep(0.05)
-        log.warning("autostart gave up: %s", self._fault_reason or "no map yet", extra={"event": "autostart_failed"})
+        log.warning(
+            "autostart gave up: %s",
+            self._fault_reason or "no map yet",
+            extra={"event": "autostart_failed"},
+        )
 
     # -- stages ---------------------------------------------------------------------------
 
@@ -549,11 +575,18 @@ class Runtime:
             )
 
     def _map_step(
-        self, mapper: GroundMapper, floor: FloorMsg, pose: Pose2D, now_pose: Pose2D, frontier_due: bool
+        self,
+        mapper: GroundMapper,
+        floor: FloorMsg,
+        pose: Pose2D,
+        now_pose: Pose2D,
+        frontier_due: bool,
     ) -> tuple[MapMsg, FrontierSearch | None]:
         """In the mapping thread: fuse the frame, maybe search frontiers, cut the window."""
         update = mapper.update(floor.floor_mask, pose, floor.capture_s)
-        search = mapper.frontiers(now_pose, given_up_xy=self.given_up_goals) if frontier_due else None
+        search = (
+            mapper.frontiers(now_pose, given_up_xy=self.given_up_goals) if frontier_due else None
+        )
         frontier = search if search is not None else self.frontier
         params = mapper.grid.params
         cells, window = map_window(
@@ -565,7 +598,10 @@ class Runtime:
             occupied_threshold=params.occupied_threshold,
         )
         clearance = clearance_ahead_m(
-            update.patch, mapper.birdseye.grid, self.config.mapping.robot_radius_m, self.config.mapping.max_range_m
+            update.patch,
+            mapper.birdseye.grid,
+            self.config.mapping.robot_radius_m,
+            self.config.mapping.max_range_m,
         )
         goal = frontier.goal if frontier is not None else None
         msg = MapMsg(
@@ -595,7 +631,13 @@ class Runtime:
                 self._frontier_due_s = start + self.config.steering.frontier_period_s
             pose = self.odometry.pose_at(floor.capture_s)
             msg, search = await self._run_in(
-                self._mapping_pool, self._map_step, mapper, floor, pose, self.odometry.pose, frontier_due
+                self._mapping_pool,
+                self._map_step,
+                mapper,
+                floor,
+                pose,
+                self.odometry.pose,
+                frontier_due,
             )
             if mapper is not self.mapper:
                 continue  # recalibrated meanwhile: this map is gone
@@ -621,7 +663,9 @@ class Runtime:
             self.given_up_goals.append(goal.xy)
             log.info(
                 "frontier goal (%.2f, %.2f) given up after %.0f s",
-                goal.xy[0], goal.xy[1], self.config.steering.goal_patience_s,
+                goal.xy[0],
+                goal.xy[1],
+                self.config.steering.goal_patience_s,
                 extra={"event": "goal_given_up"},
             )
             self._goal_since = None
@@ -637,7 +681,9 @@ class Runtime:
                 msg.window_cells, msg.window_grid, self.odometry.pose, msg.path_xy
             )
             self.stages.add("steering", self.clock() - start)
-            self.steering_reasons[decision.reason] = self.steering_reasons.get(decision.reason, 0) + 1
+            self.steering_reasons[decision.reason] = (
+                self.steering_reasons.get(decision.reason, 0) + 1
+            )
             self.decisions.publish(decision)
             self.mux.autonomy(decision.twist, self.clock(), origin_s=msg.capture_s)
             self._wake_drive.set()
@@ -660,7 +706,10 @@ class Runtime:
                 problems.append(f"Uno {link.state.value}: {link.status().detail}")
             camera_status = self.devices.camera.status()
             if not self._camera_ok:
-                problems.append(f"camera {camera_status.state.value}: {camera_status.detail or 'no recent frame'}")
+                problems.append(
+                    f"camera {camera_status.state.value}: "
+                    + (camera_status.detail or "no recent frame")
+                )
             reason = "; ".join(problems)
             if reason and not self._fault_reason:
                 self.counters.faults += 1
@@ -668,7 +717,10 @@ class Runtime:
                 if self._autonomous:
                     self._autonomous = False
                     self.mux.clear_autonomy()
-                    log.warning("autonomy stopped by the fault; start again when it clears", extra={"event": "stop"})
+                    log.warning(
+                        "autonomy stopped by the fault; start again when it clears",
+                        extra={"event": "stop"},
+                    )
             elif not reason and self._fault_reason:
                 log.info("devices healthy again", extra={"event": "fault_cleared"})
             connected = link.state is DeviceState.CONNECTED
@@ -720,8 +772,15 @@ class Runtime:
             decision = self.decisions.peek()
             self.drives.publish(
                 DriveMsg(
-                    twist, pwm[0], pwm[1], out.source, sent, out.origin_s,
-                    decision.heading_rad if decision is not None and out.source == "autonomy" else None,
+                    twist,
+                    pwm[0],
+                    pwm[1],
+                    out.source,
+                    sent,
+                    out.origin_s,
+                    decision.heading_rad
+                    if decision is not None and out.source == "autonomy"
+                    else None,
                 )
             )
 
@@ -744,7 +803,9 @@ class Runtime:
                 if not self._stale_active:
                     self._stale_active = True
                     self.counters.watchdog_stops += 1
-                    log.warning("stale perception or map: motors zero", extra={"event": "watchdog_stop"})
+                    log.warning(
+                        "stale perception or map: motors zero", extra={"event": "watchdog_stop"}
+                    )
                 return MuxOutput(Twist(), "watchdog", now, now)
             self._stale_active = False
         if out.twist.v_m_s > 0:
@@ -760,7 +821,9 @@ class Runtime:
                         safety.min_clearance_m,
                         extra={"event": "clearance_stop"},
                     )
-                return MuxOutput(Twist(0.0, out.twist.omega_rad_s), out.source, out.stamp_s, out.origin_s)
+                return MuxOutput(
+                    Twist(0.0, out.twist.omega_rad_s), out.source, out.stamp_s, out.origin_s
+                )
             self._clearance_active = False
         return out
 
@@ -786,7 +849,10 @@ class Runtime:
         transition = Transition(self.clock(), time.time(), self.state, new, reason)
         self.transitions.append(transition)
         log.info(
-            "state %s -> %s (%s)", self.state.value, new.value, reason,
+            "state %s -> %s (%s)",
+            self.state.value,
+            new.value,
+            reason,
             extra={"event": "state", "old": self.state.value, "new": new.value, "reason": reason},
         )
         self.state = new
@@ -818,7 +884,11 @@ class Runtime:
             "frame_age_ms": round((now - floor.capture_s) * 1000, 1) if floor else None,
             "pickup_age_ms": round(statistics.median(recent) * 1000, 2) if recent else None,
             "stage_ms": self.stages.recent_ms(),
-            "pose": {"x_m": round(pose.x_m, 3), "y_m": round(pose.y_m, 3), "theta_rad": round(pose.theta_rad, 3)},
+            "pose": {
+                "x_m": round(pose.x_m, 3),
+                "y_m": round(pose.y_m, 3),
+                "theta_rad": round(pose.theta_rad, 3),
+            },
             "distance_m": round(self.odometry.distance_m, 3),
             "camera": {
                 "state": self.devices.camera.status().state.value,
@@ -834,11 +904,15 @@ class Runtime:
                 "crc_errors": link.stats.crc_errors if link else 0,
                 "timeouts": link.stats.timeouts if link else 0,
             },
-            "calibration": None if self.calibration is None else {
+            "calibration": None
+            if self.calibration is None
+            else {
                 "reprojection_rms_px": self.calibration.reprojection_rms_px,
             },
             "calibration_problem": self.calibration_problem or None,
-            "command": None if drive is None else {
+            "command": None
+            if drive is None
+            else {
                 "v_m_s": round(drive.twist.v_m_s, 3),
                 "omega_rad_s": round(drive.twist.omega_rad_s, 3),
                 "left_pwm": drive.left_pwm,
@@ -846,7 +920,9 @@ class Runtime:
                 "source": drive.source,
                 "age_ms": round((now - drive.sent_s) * 1000, 1),
             },
-            "frontier": None if frontier is None else {
+            "frontier": None
+            if frontier is None
+            else {
                 "goal_xy": list(frontier.goal.xy) if frontier.goal else None,
                 "reason": frontier.reason,
                 "clusters": len(frontier.clusters),
@@ -855,7 +931,12 @@ class Runtime:
             "counters": dict(self.counters.__dict__),
             "estops": self.mux.estops,
             "transitions": [
-                {"t": round(t.wall_time, 3), "from": t.old.value, "to": t.new.value, "reason": t.reason}
+                {
+                    "t": round(t.wall_time, 3),
+                    "from": t.old.value,
+                    "to": t.new.value,
+                    "reason": t.reason,
+                }
                 for t in list(self.transitions)[-10:]
             ],
         }
@@ -897,7 +978,9 @@ class Runtime:
             "faults": self.counters.faults,
             "commands_sent": self.counters.commands_sent,
             "send_errors": self.counters.send_errors,
-            "serial": None if link is None else {
+            "serial": None
+            if link is None
+            else {
                 "reconnects": link.stats.reconnects,
                 "timeouts": link.stats.timeouts,
                 "crc_errors": link.stats.crc_errors,
@@ -908,6 +991,8 @@ class Runtime:
             "final_state": self.state.value,
             "shutdown_reason": self._shutdown_reason or None,
             "crash": self.crash,
-            "final_motor_pwm": list(sim.uno.pwm) if sim is not None and sim.uno is not None else None,
+            "final_motor_pwm": list(sim.uno.pwm)
+            if sim is not None and sim.uno is not None
+            else None,
             "pid": os.getpid(),
         }

@@ -56,7 +56,7 @@ class MuxOutput:
     origin_s: float
 
 
-class TeleopRefused(Exception):
+class TeleopRefusedError(Exception):
     """Another driver holds teleop; take over explicitly to replace them."""
 
 
@@ -110,15 +110,16 @@ class CommandMux:
 
         Raises
         ------
-        TeleopRefused : another driver is live and this one neither takes over nor stops.
+        TeleopRefusedError : another driver is live and this one neither takes over nor stops.
         """
         current = self._live_teleop(now_s)
-        if current is not None and current.driver != driver and not take_over:
-            if not twist.is_zero:
-                raise TeleopRefused(
-                    f"teleop is held by {current.driver!r}; take over explicitly to drive"
-                )
-            # Anyone may stop the robot: a zero from another driver takes over as a stop.
+        # Anyone may stop the robot: a zero from another driver takes over as a stop.
+        held_by_other = current is not None and current.driver != driver
+        if held_by_other and not take_over and not twist.is_zero:
+            assert current is not None
+            raise TeleopRefusedError(
+                f"teleop is held by {current.driver!r}; take over explicitly to drive"
+            )
         self._teleop = _Input(twist, now_s, now_s, driver)
 
     def release(self, driver: str | None = None) -> None:

@@ -6,7 +6,8 @@
 2. Open windows: runs of directions whose range is at least ``min_advance_m``.
 3. The desired heading points at the frontier path ``lookahead_m`` ahead (or, with no
    goal, the robot scans in place). The chosen heading is the desired one if that aim
-   point is reachable in a straight line or the direction lies in an open window (``window_margin_rad`` inside its edges), else the nearest point of the
+   point is reachable in a straight line or the direction lies in an open window
+   (``window_margin_rad`` inside its edges), else the nearest point of the
    nearest window; with no open window at all, the robot turns in place towards the
    desired heading (it is blocked).
 4. Speed: heading errors beyond ``turn_in_place_rad`` turn in place; otherwise the
@@ -108,7 +109,7 @@ def polar_free_range(
     first = np.where(hit.any(axis=1), hit.argmax(axis=1), len(distances))
     ranges = np.where(first > 0, distances[np.maximum(first - 1, 0)], 0.0)
     ranges = np.where(first >= len(distances), max_range_m, ranges)
-    return PolarRanges(angles, ranges.astype(np.float64))
+    return PolarRanges(angles.astype(np.float64), ranges.astype(np.float64))
 
 
 def open_windows(polar: PolarRanges, min_advance_m: float) -> list[tuple[float, float]]:

@@ -20,10 +20,13 @@ Each kept cluster gets its *representative cell*: its reachable cell with the sh
 path from the robot (ties: first in raster order), with that path's length. The **goal**
 is the reachable cluster with the lowest score
 
-    ``score = path_length_m + size_penalty_m * min_cluster_cells / size_cells``
+    ``score = path_length_m + size_penalty_m * min_cluster_cells / size_cells
+              + turn_penalty_m_per_rad * |bearing error|``
 
 (ties: larger cluster, then lower index), so with the default ``size_penalty_m = 0`` it
 is the nearest reachable frontier; a positive penalty trades distance for larger openings.
+The bearing error is the angle between the robot's heading (when given) and the straight
+line to the representative cell: a robot that turns slowly prefers what lies ahead.
 The goal's cell is that cluster's representative cell, and the goal carries the path to it.
 """
 
@@ -62,6 +65,7 @@ class FrontierParams:
     robot_radius_m : float >= 0, radius of the footprint treated as known and traversable.
     size_penalty_m : float >= 0, see the module docstring's score.
     frontier_adjacency : 4 or 8, which unknown neighbours make a free cell a frontier.
+    turn_penalty_m_per_rad : float >= 0, see the module docstring's score.
     exclude_radius_m : float >= 0, frontier cells within this distance of the robot are
         ignored: the camera cannot see the floor right beside the robot, so turning to
         look there never resolves them.
@@ -73,6 +77,7 @@ class FrontierParams:
     size_penalty_m: float = 0.0
     frontier_adjacency: int = 4
     exclude_radius_m: float = 0.0
+    turn_penalty_m_per_rad: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.min_cluster_cells, int) or self.min_cluster_cells < 1:
@@ -80,7 +85,13 @@ class FrontierParams:
                 f"FrontierParams.min_cluster_cells: must be an int >= 1, got"
                 f" {self.min_cluster_cells!r}"
             )
-        for name in ("inflation_radius_m", "robot_radius_m", "size_penalty_m", "exclude_radius_m"):
+        for name in (
+            "inflation_radius_m",
+            "robot_radius_m",
+            "size_penalty_m",
+            "exclude_radius_m",
+            "turn_penalty_m_per_rad",
+        ):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and 0 <= value < math.inf):
                 raise ValueError(f"FrontierParams.{name}: must be finite and >= 0, got {value!r}")
@@ -337,6 +348,8 @@ def find_frontiers(
     grid: GroundGrid,
     robot_xy_world: tuple[float, float],
     params: FrontierParams | None = None,
+    *,
+    robot_heading_rad: float | None = None,
 ) -> FrontierSearch:
     """Frontier clusters of a classified grid and the goal to explore next.
 
@@ -347,6 +360,7 @@ def find_frontiers(
     grid : GroundGrid of ``cells`` (the world frame).
     robot_xy_world : (x, y) metres, the robot's position (``T_world_robot.x_m, .y_m``).
     params : FrontierParams
+    robot_heading_rad : the robot's heading in the world frame, for the turn penalty.
 
     Returns
     -------
@@ -421,7 +435,13 @@ def find_frontiers(
         return result(None, REASON_NO_REACHABLE)
 
     def score(c: FrontierCluster) -> float:
-        return c.path_length_m + params.size_penalty_m * params.min_cluster_cells / c.size_cells
+        value = c.path_length_m + params.size_penalty_m * params.min_cluster_cells / c.size_cells
+        if robot_heading_rad is not None and c.representative_xy is not None:
+            dx, dy = c.representative_xy[0] - robot_xy[0], c.representative_xy[1] - robot_xy[1]
+            if dx or dy:
+                bearing = math.remainder(math.atan2(dy, dx) - robot_heading_rad, math.tau)
+                value += params.turn_penalty_m_per_rad * abs(bearing)
+        return value
 
     chosen = min(reachable, key=lambda c: (score(c), -c.size_cells, c.index))
     assert chosen.representative_cell is not None and chosen.representative_xy is not None

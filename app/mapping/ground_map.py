@@ -51,6 +51,7 @@ def frontier_params(mapping: MappingConfig) -> FrontierParams:
         robot_radius_m=mapping.robot_radius_m,
         exclude_radius_m=mapping.frontier_exclude_radius_m,
         size_penalty_m=mapping.frontier_size_penalty_m,
+        turn_penalty_m_per_rad=mapping.frontier_turn_penalty_m_per_rad,
     )
 
 
@@ -126,4 +127,6 @@ class GroundMapper:
         for xy in given_up_xy:
             near = footprint_mask(world, xy, given_up_radius_m)
             cells[near & (cells == UNKNOWN)] = FREE
-        return find_frontiers(cells, world, (T_world_robot.x_m, T_world_robot.y_m), self.frontier_params)
+        return find_frontiers(
+            cells, world, (T_world_robot.x_m, T_world_robot.y_m), self.frontier_params
+        )

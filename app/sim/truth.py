@@ -60,7 +60,9 @@ def map_truth_scores(
     plan_points = np.column_stack((x.ravel(), y.ravel()))
     map_points = T_plan_map.inverse().apply(plan_points)
     rc = map_grid.cell_of(map_points)
-    on_map = (rc[:, 0] >= 0) & (rc[:, 0] < map_grid.rows) & (rc[:, 1] >= 0) & (rc[:, 1] < map_grid.cols)
+    on_map = (
+        (rc[:, 0] >= 0) & (rc[:, 0] < map_grid.rows) & (rc[:, 1] >= 0) & (rc[:, 1] < map_grid.cols)
+    )
     mapped = np.full(len(rc), UNKNOWN, dtype=np.int8)
     mapped[on_map] = classes[rc[on_map, 0], rc[on_map, 1]]
     mapped = mapped.reshape(truth_grid.shape)

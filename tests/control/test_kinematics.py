@@ -25,7 +25,9 @@ def test_wheel_speeds_of_a_turn_in_place() -> None:
 
 
 def test_pwm_inverts_the_simulated_motor_model() -> None:
-    params = RobotParams(deadband_pwm=DRIVE.pwm_deadband, max_wheel_speed_m_s=DRIVE.max_wheel_speed_m_s)
+    params = RobotParams(
+        deadband_pwm=DRIVE.pwm_deadband, max_wheel_speed_m_s=DRIVE.max_wheel_speed_m_s
+    )
     for speed in (0.05, 0.1, 0.3, -0.2):
         assert pwm_to_speed(speed_to_pwm(speed, DRIVE), params) == pytest.approx(speed, abs=0.003)
     assert speed_to_pwm(0.0, DRIVE) == 0
@@ -33,7 +35,9 @@ def test_pwm_inverts_the_simulated_motor_model() -> None:
 
 
 def test_limits_keep_the_curvature() -> None:
-    drive = DriveConfig(max_linear_speed_m_s=2.0, max_angular_speed_rad_s=10.0, max_wheel_speed_m_s=0.5)
+    drive = DriveConfig(
+        max_linear_speed_m_s=2.0, max_angular_speed_rad_s=10.0, max_wheel_speed_m_s=0.5
+    )
     limited = limit_twist(Twist(1.0, 5.0), drive)
     left, right = wheel_speeds(limited, drive.wheel_base_m)
     assert max(abs(left), abs(right)) == pytest.approx(0.5)
@@ -67,7 +71,11 @@ def drive_ticks(odo: WheelOdometry, left_m: float, right_m: float, t0: float, t1
     base_l, base_r = odo._last_ticks or (0, 0)
     for i in range(1, 11):
         f = i / 10
-        odo.update(base_l + round(left_m * f * per_m), base_r + round(right_m * f * per_m), t0 + (t1 - t0) * f)
+        odo.update(
+            base_l + round(left_m * f * per_m),
+            base_r + round(right_m * f * per_m),
+            t0 + (t1 - t0) * f,
+        )
 
 
 def test_odometry_straight_and_turning() -> None:

@@ -5,7 +5,7 @@ import math
 
 import pytest
 
-from app.control.mux import ZERO, CommandMux, TeleopRefused, Twist
+from app.control.mux import ZERO, CommandMux, TeleopRefusedError, Twist
 
 FWD = Twist(0.2, 0.0)
 TURN = Twist(0.0, 1.0)
@@ -78,12 +78,12 @@ def test_reset_without_estop_reports_false() -> None:
 def test_single_driver_newer_one_must_take_over() -> None:
     mux = make()
     mux.teleop("alice", FWD, 0.0)
-    with pytest.raises(TeleopRefused, match="alice"):
+    with pytest.raises(TeleopRefusedError, match="alice"):
         mux.teleop("bob", TURN, 0.1)
     assert mux.output(0.1).twist == FWD
     mux.teleop("bob", TURN, 0.2, take_over=True)
     assert mux.teleop_driver(0.2) == "bob"
-    with pytest.raises(TeleopRefused):
+    with pytest.raises(TeleopRefusedError):
         mux.teleop("alice", FWD, 0.3)
 
 

@@ -30,8 +30,10 @@ def wall_at_x(cells: np.ndarray, x_m: float) -> None:
     cells[int(np.argmin(np.abs(x[:, 0] - x_m))), :] = OCCUPIED  # the cell row nearest x_m
 
 
-def ranges(cells: np.ndarray, pose: Pose2D = Pose2D(), body: float = 0.15) -> PolarRanges:
-    return polar_free_range(cells, GRID, pose, body_radius_m=body, max_range_m=2.5, n_directions=72)
+def ranges(cells: np.ndarray, pose: Pose2D | None = None, body: float = 0.15) -> PolarRanges:
+    return polar_free_range(
+        cells, GRID, pose or Pose2D(), body_radius_m=body, max_range_m=2.5, n_directions=72
+    )
 
 
 def test_free_map_has_full_range_everywhere() -> None:
@@ -43,7 +45,7 @@ def test_wall_ahead_limits_range_by_the_body_radius() -> None:
     wall_at_x(cells, 1.0)
     polar = ranges(cells)
     ahead = polar.range_towards(0.0)
-        # The wall's cell spans 1.0..1.05 m; grown by 0.15 m (to whole cells) the robot can
+    # The wall's cell spans 1.0..1.05 m; grown by 0.15 m (to whole cells) the robot can
     # go 0.85 m, give or take a cell.
     assert 0.82 <= ahead <= 0.92
     assert polar.range_towards(math.pi) == 2.5  # behind: free
@@ -74,7 +76,9 @@ def test_open_windows_wrap_round_behind() -> None:
     windows = open_windows(polar, 0.5)
     assert len(windows) == 1
     start, end = windows[0]
-    assert start == pytest.approx(math.radians(135)) and end == pytest.approx(math.radians(135 + 90))
+    assert start == pytest.approx(math.radians(135)) and end == pytest.approx(
+        math.radians(135 + 90)
+    )
     assert open_windows(PolarRanges(angles, np.zeros(8)), 0.5) == []
     assert open_windows(PolarRanges(angles, np.ones(8)), 0.5) == [(-math.pi, math.pi)]
 
@@ -139,7 +143,11 @@ def test_closed_goal_direction_steers_through_the_open_window() -> None:
 
 def test_no_goal_scans_in_place() -> None:
     decision = steering().decide(free_map(), GRID, Pose2D(), None)
-    assert decision.reason == "scan" and decision.twist.v_m_s == 0.0 and decision.twist.omega_rad_s != 0
+    assert (
+        decision.reason == "scan"
+        and decision.twist.v_m_s == 0.0
+        and decision.twist.omega_rad_s != 0
+    )
 
 
 def test_boxed_in_turns_towards_the_goal_without_moving() -> None:

@@ -50,7 +50,9 @@ async def running(
         runtime = Runtime(config, devices, **runtime_kwargs)
         task = asyncio.create_task(runtime.run(install_signals=False))
         try:
-            await wait_for(lambda: runtime.maps.peek() is not None or task.done(), 20.0, "the first map")
+            await wait_for(
+                lambda: runtime.maps.peek() is not None or task.done(), 20.0, "the first map"
+            )
             yield runtime, task
         finally:
             runtime.request_shutdown("test over")

@@ -16,7 +16,9 @@ import pytest
 PROJECT = Path(__file__).resolve().parents[2]
 
 
-def floornav(*args: str, env: dict[str, str] | None = None, **kwargs: object) -> subprocess.Popen[str]:
+def floornav(
+    *args: str, env: dict[str, str] | None = None, **kwargs: object
+) -> subprocess.Popen[str]:
     return subprocess.Popen(
         [sys.executable, "-m", "app", *args],
         cwd=PROJECT,
@@ -42,7 +44,11 @@ def test_invalid_config_exits_before_touching_hardware(tmp_path: Path) -> None:
 def test_sigterm_stops_the_motors_and_writes_the_report(tmp_path: Path) -> None:
     report = tmp_path / "r.json"
     proc = floornav(
-        "run", "--duration-s", "120", "--report", str(report),
+        "run",
+        "--duration-s",
+        "120",
+        "--report",
+        str(report),
         env={"FLOORNAV_RUNTIME__LOG_JSON": "true"},
     )
     assert proc.stderr is not None
@@ -69,7 +75,17 @@ def test_sigterm_stops_the_motors_and_writes_the_report(tmp_path: Path) -> None:
     assert data["shutdown_reason"] == "SIGTERM"
     assert data["final_motor_pwm"] == [0, 0]
     assert data["collisions"] == 0
-    for key in ("frames", "fps", "latency_ms", "stage_ms", "coverage_ratio", "map_iou",
-                "distance_m", "estops", "watchdog_stops", "rss_mb"):
+    for key in (
+        "frames",
+        "fps",
+        "latency_ms",
+        "stage_ms",
+        "coverage_ratio",
+        "map_iou",
+        "distance_m",
+        "estops",
+        "watchdog_stops",
+        "rss_mb",
+    ):
         assert key in data
     assert set(data["latency_ms"]) >= {"p50", "p95", "max"}

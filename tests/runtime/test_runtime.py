@@ -15,7 +15,7 @@ from app.hardware.interfaces import CameraFrame, DeviceState, DeviceStatus
 from app.hardware.protocol import MsgType
 from app.messages import State
 from app.perception.pipeline import FloorResult, FloorSegmenter
-from app.runtime import CommandRefused
+from app.runtime import CommandRefusedError
 
 from .conftest import running, sim_config, wait_for
 
@@ -56,9 +56,9 @@ async def test_estop_latches_and_refuses_until_reset() -> None:
         rt.estop("test")
         await wait_for(lambda: sim.uno.pwm == (0, 0), 0.5, "e-stop to zero the motors")
         assert rt.state is State.ESTOPPED
-        with pytest.raises(CommandRefused, match="e-stop"):
+        with pytest.raises(CommandRefusedError, match="e-stop"):
             await rt.start()
-        with pytest.raises(CommandRefused, match="e-stop"):
+        with pytest.raises(CommandRefusedError, match="e-stop"):
             rt.teleop("alice", 0.2, 0.0)
         await asyncio.sleep(0.3)
         assert sim.uno.pwm == (0, 0)
@@ -74,7 +74,7 @@ async def test_teleop_overrides_then_times_out_to_an_explicit_zero() -> None:
         rt.teleop("alice", 0.2, 0.0)
         assert rt.state is State.TELEOP
         await wait_for(lambda: sim.uno.pwm[0] > 0 and sim.uno.pwm[1] > 0, 1.0, "teleop forward")
-        with pytest.raises(CommandRefused, match="alice"):
+        with pytest.raises(CommandRefusedError, match="alice"):
             rt.teleop("bob", 0.0, 1.0)
         sent = time.monotonic()
         await wait_for(lambda: sim.uno.pwm == (0, 0), 1.5, "the teleop timeout's zero")
@@ -163,7 +163,7 @@ async def test_missing_calibration_refuses_autonomy_but_allows_teleop() -> None:
         task = asyncio.create_task(rt.run(install_signals=False))
         try:
             await wait_for(lambda: rt.floors.peek() is not None, 20.0, "perception")
-            with pytest.raises(CommandRefused, match="calibration"):
+            with pytest.raises(CommandRefusedError, match="calibration"):
                 await rt.start()
             assert rt.status()["calibration_problem"].startswith("no floor calibration")
             sim = devices.sim
