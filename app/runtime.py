@@ -815,7 +815,7 @@ class Runtime:
                 if not self._clearance_active:
                     self._clearance_active = True
                     self.counters.clearance_stops += 1
-                    log.info(
+                    log.debug(
                         "clearance %.2f m ahead < %.2f m: no forward motion",
                         map_msg.clearance_ahead_m,
                         safety.min_clearance_m,
