@@ -151,7 +151,8 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from app.benchmarks.sim import bench_render
 
     config = _load(args.config)
-    result = run_bench(config.perception, args.datasets, repeats=args.repeats)
+    perception = config.perception.model_copy(update={"method": args.method})
+    result = run_bench(perception, args.datasets, repeats=args.repeats)
     grid = bench_grid_update(max(1, args.repeats))
     result["grid_update"] = grid
     render = bench_render(max(1, args.repeats // 2))
@@ -237,6 +238,11 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="time the pipeline's stages against the reference")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--repeats", type=int, default=5, help="passes over the bench images")
+    p.add_argument(
+        "--method",
+        default="floornav",
+        help="the segmentation method to time (default floornav, the superpixel pipeline)",
+    )
     p.add_argument(
         "--datasets", type=Path, default=DEFAULT_DATASETS_DIR, help="the shared datasets folder"
     )

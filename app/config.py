@@ -326,15 +326,6 @@ class FloornavConfig(BaseSettings):
     web: WebConfig = WebConfig()
     viser: ViserConfig = ViserConfig()
 
-    @model_validator(mode="after")
-    def _check_devices(self) -> FloornavConfig:
-        if self.camera.source == "sim" and self.serial.backend == "port":
-            raise ValueError(
-                "camera.source = 'sim' renders the simulated robot, which only moves with "
-                "serial.backend = 'sim' or 'simavr'; use a real camera with a real Uno"
-            )
-        return self
-
     @classmethod
     def settings_customise_sources(
         cls,
@@ -377,6 +368,9 @@ def _issues_from_validation(error: ValidationError) -> list[ConfigIssue]:
     for item in error.errors():
         key = ".".join(str(part) for part in item["loc"]) or "<root>"
         message = item["msg"]
+        if key == "<root>":
+            issues.append(ConfigIssue(key=key, message=message))
+            continue
         if item["type"] not in ("extra_forbidden", "missing") and "input" in item:
             message = f"{message} (got {item['input']!r})"
         issues.append(ConfigIssue(key=key, message=message))

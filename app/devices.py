@@ -9,7 +9,7 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from app.config import FloornavConfig
+from app.config import ConfigError, ConfigIssue, FloornavConfig
 from app.hardware.cameras import OpenCVCamera, ReplayCamera, SimCamera
 from app.hardware.interfaces import Camera
 from app.hardware.serial_link import UnoLink
@@ -86,9 +86,21 @@ def open_devices(config: FloornavConfig) -> Iterator[Devices]:
 
     Raises
     ------
+    ConfigError : a simulated camera with a real Uno (nothing would move in its view).
     WorldError, CalibrationError, OSError : a sim world, intrinsics file or device
         that cannot be opened at all (a camera or Uno that fails later is retried).
     """
+    if config.camera.source == "sim" and config.serial.backend == "port":
+        raise ConfigError(
+            "configuration",
+            [
+                ConfigIssue(
+                    "camera.source",
+                    "'sim' renders the simulated robot, which only moves with serial.backend "
+                    "'sim' or 'simavr'; with a real Uno use a real camera ('device')",
+                )
+            ],
+        )
     with contextlib.ExitStack() as stack:
         cam_cfg = config.camera
         intrinsics = (

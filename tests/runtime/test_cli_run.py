@@ -89,3 +89,15 @@ def test_sigterm_stops_the_motors_and_writes_the_report(tmp_path: Path) -> None:
     ):
         assert key in data
     assert set(data["latency_ms"]) >= {"p50", "p95", "max"}
+
+
+def test_simulated_camera_with_a_real_uno_is_refused_naming_the_key() -> None:
+    proc = floornav(
+        "run",
+        "--duration-s",
+        "5",
+        env={"FLOORNAV_SERIAL__BACKEND": "port", "FLOORNAV_SERIAL__PORT": "/dev/null-uno"},
+    )
+    _, err = proc.communicate(timeout=60)
+    assert proc.returncode == 2
+    assert "camera.source" in err
