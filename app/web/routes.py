@@ -26,7 +26,6 @@ from app.mapping.calibration import (
     find_chessboard,
     floor_homography_from_chessboard,
     homography_from_point_pairs,
-    parse_pattern,
 )
 from app.mapping.calibration_files import save_floor_calibration
 from app.web.context import WebContext, json_safe
@@ -41,6 +40,7 @@ from app.web.schemas import (
     EstopResetResponse,
     TeleopReleaseRequest,
     TeleopRequest,
+    check_board_pattern,
 )
 from app.web.video import encode_jpeg
 
@@ -222,7 +222,7 @@ def build_api_router(ctx: WebContext) -> APIRouter:
 
         def fit(image: NDArray[np.uint8]) -> FloorCalibration:
             if isinstance(body, ChessboardCalibrationRequest):
-                pattern = parse_pattern(body.pattern)
+                pattern = check_board_pattern(body.pattern)
                 placement = BoardPlacement(body.board_x_m, body.board_y_m, body.board_yaw_rad)
                 calibration = floor_homography_from_chessboard(
                     image, pattern, body.square_m, intrinsics=intrinsics, placement=placement
@@ -271,7 +271,10 @@ def build_api_router(ctx: WebContext) -> APIRouter:
         frame = service.frames.peek()
         if frame is None:
             raise HTTPException(409, detail="no camera frame yet")
-        size = parse_pattern(pattern) if pattern is not None else None
+        try:
+            size = check_board_pattern(pattern) if pattern is not None else None
+        except ValueError as exc:
+            raise HTTPException(422, detail=str(exc)) from exc
         jpeg, found = await asyncio.to_thread(_draw_preview, frame.image, size)
         return Response(jpeg, media_type="image/jpeg", headers={"X-Chessboard-Corners": str(found)})
 

@@ -4,7 +4,7 @@ from __future__ import annotations
 
 from typing import Annotated, Any
 
-from pydantic import BaseModel, ConfigDict, Field, model_validator
+from pydantic import BaseModel, ConfigDict, Field, field_validator, model_validator
 
 from app.messages import State
 
@@ -17,6 +17,15 @@ GroundPair = tuple[
     Annotated[float, Field(allow_inf_nan=False, ge=-100.0, le=100.0)],
     Annotated[float, Field(allow_inf_nan=False, ge=-100.0, le=100.0)],
 ]
+
+
+def check_board_pattern(pattern: str) -> tuple[int, int]:
+    """(cols, rows) of a ``COLSxROWS`` pattern OpenCV can detect: at least 3x3 inner
+    corners (its detector raises on fewer; `parse_pattern` allows 2). Raises ValueError."""
+    cols, _, rows = pattern.lower().partition("x")
+    if not (cols.isdigit() and rows.isdigit()) or min(int(cols), int(rows)) < 3:
+        raise ValueError(f"pattern must be COLSxROWS inner corners, each >= 3, got {pattern!r}")
+    return int(cols), int(rows)
 
 
 class Body(BaseModel):
@@ -55,6 +64,12 @@ class ChessboardCalibrationRequest(Body):
     board_yaw_rad: Annotated[float, Field(ge=-0.8, le=0.8, allow_inf_nan=False)] = 0.0
     """The board frame in the robot frame (`app.mapping.calibration.BoardPlacement`)."""
     save: bool = True
+
+    @field_validator("pattern")
+    @classmethod
+    def _opencv_pattern(cls, pattern: str) -> str:
+        check_board_pattern(pattern)
+        return pattern
 
 
 class PointPairCalibrationRequest(Body):

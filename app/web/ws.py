@@ -8,6 +8,25 @@ present it). A client offering the ``floornav`` subprotocol gets it selected.
 Senders never queue: each client has its own loop that waits for a value newer than the
 one it sent last (`app.channels.SlotReader`) and awaits the send, so a slow client gets
 fewer, never older, values and never holds up another client.
+
+Messages
+--------
+``/ws/telemetry``: text ``{"type": "status", "sent_wall_s", ...Runtime.status()}`` at
+``web.telemetry_hz``; NaN becomes null.
+
+``/ws/video[?ack=N]``: per frame a text header ``{"type": "frame", "seq", "capture_s",
+"capture_wall_s", "sent_s", "sent_wall_s", "width", "height", "method", "bytes",
+"encode_ms", "skipped"}`` (``*_s`` monotonic, ``*_wall_s`` epoch seconds), then one
+binary message with the JPEG. Browsers buffer everything a socket delivers, so a
+browser should connect with ``?ack=1`` and send ``{"type": "ack", "seq": n}`` after
+drawing each frame: at most N frames are then unacknowledged and each one sent is the
+newest at that moment.
+
+``/ws/control`` (token required): the server first sends ``{"type": "hello", "driver"}``,
+then answers every message ``{"type": "teleop", "v_m_s", "omega_rad_s", "take_over"?}``,
+``{"type": "release" | "estop" | "estop_reset" | "start" | "stop"}`` (each may carry an
+``"id"`` that is echoed) with ``{"type": "ack" | "error", "detail", "state", "id"?}``.
+Closing the socket releases that connection's teleop.
 """
 
 from __future__ import annotations
@@ -35,6 +54,7 @@ from app.web.service import RobotService
 log = logging.getLogger("floornav.web")
 
 POLICY_VIOLATION = 1008
+MAX_VIDEO_ACK_WINDOW = 8
 
 
 class _Message(BaseModel):
@@ -83,20 +103,30 @@ async def admit(websocket: WebSocket, ctx: WebContext, *, needs_token: bool) -> 
     return True
 
 
-async def _until_disconnect(websocket: WebSocket) -> None:
-    """Read (and drop) what a send-only client sends, until it goes away."""
+async def _until_disconnect(
+    websocket: WebSocket, on_text: Callable[[str], None] | None = None
+) -> None:
+    """Read what a send-mostly client sends (text to ``on_text``, the rest dropped),
+    until it goes away."""
     while True:
         message = await websocket.receive()
         if message["type"] == "websocket.disconnect":
             return
+        text = message.get("text")
+        if on_text is not None and text is not None:
+            on_text(text)
 
 
-async def run_sender(websocket: WebSocket, send_loop: Callable[[], Awaitable[None]]) -> None:
+async def run_sender(
+    websocket: WebSocket,
+    send_loop: Callable[[], Awaitable[None]],
+    on_text: Callable[[str], None] | None = None,
+) -> None:
     """Run ``send_loop`` until it ends or the client disconnects, whichever is first
     (without a reader, a client that leaves while no new value comes would never be
-    noticed)."""
+    noticed). Text the client sends meanwhile goes to ``on_text``."""
     sender = asyncio.ensure_future(send_loop())
-    watcher = asyncio.ensure_future(_until_disconnect(websocket))
+    watcher = asyncio.ensure_future(_until_disconnect(websocket, on_text))
     try:
         await asyncio.wait({sender, watcher}, return_when=asyncio.FIRST_COMPLETED)
     finally:
@@ -175,15 +205,35 @@ def build_ws_router(ctx: WebContext) -> APIRouter:
 
     @router.websocket("/ws/video")
     async def video(websocket: WebSocket) -> None:
+        try:
+            window = int(websocket.query_params.get("ack", "0"))
+        except ValueError:
+            window = -1
+        if not 0 <= window <= MAX_VIDEO_ACK_WINDOW:
+            await websocket.close(POLICY_VIOLATION, f"ack must be 0..{MAX_VIDEO_ACK_WINDOW}")
+            return
         if not await admit(websocket, ctx, needs_token=ctx.protect_reads):
             return
+        # Browsers read every message off the socket at once, so awaiting the send does
+        # not slow the server down for them: with ?ack=N at most N frames are unacked.
+        credits = asyncio.BoundedSemaphore(window) if window else None
         reader = SlotReader(service.floors)
         if service.floors.peek() is not None:
             reader.version -= 1  # the newest frame at once, then each newer one
         metrics.video_clients.inc()
 
+        def on_text(text: str) -> None:
+            if credits is None:
+                return
+            with contextlib.suppress(ValueError):  # not JSON, or more acks than frames
+                message = json.loads(text)
+                if isinstance(message, dict) and message.get("type") == "ack":
+                    credits.release()
+
         async def send_loop() -> None:
             while True:
+                if credits is not None:
+                    await credits.acquire()  # first the credit, then the newest frame
                 floor = await reader.next()
                 try:
                     frame = await ctx.encoder.frame_for(floor, service.drives.peek())
@@ -209,7 +259,7 @@ def build_ws_router(ctx: WebContext) -> APIRouter:
                 metrics.video_frames_sent.inc()
 
         try:
-            await run_sender(websocket, send_loop)
+            await run_sender(websocket, send_loop, on_text)
         finally:
             metrics.video_clients.dec()
 
