@@ -18,6 +18,7 @@ const $ = (id) => document.getElementById(id);
 const stats = {
   frames: 0,
   latenciesMs: [],
+  serverMs: [],
   lastLatencyMs: null,
   status: null,
   controlReplies: [],
@@ -186,8 +187,10 @@ function renderStatus(s) {
   $("pose").textContent = `${fmt(p.x_m, 2)}, ${fmt(p.y_m, 2)} m · ${fmt((p.theta_rad || 0) * 180 / Math.PI)}°`;
   $("distance").textContent = fmt(s.distance_m, 2);
   const f = s.frontier;
-  $("frontier").textContent = f ? (f.goal_xy ? `goal ${fmt(f.goal_xy[0], 2)}, ${fmt(f.goal_xy[1], 2)} · ` : "") +
-    f.reason + ` · ${f.clusters} clusters` : "not searched yet";
+  $("frontier").textContent = f
+    ? [f.goal_xy ? `goal ${fmt(f.goal_xy[0], 2)}, ${fmt(f.goal_xy[1], 2)} m` : "", f.reason, `${f.clusters} clusters`]
+      .filter(Boolean).join(" · ")
+    : "not searched yet";
 
   $("teleop-driver").textContent = s.teleop_driver || "nobody";
   const other = s.teleop_driver && stats.me && s.teleop_driver !== stats.me;
@@ -273,6 +276,10 @@ function showFrame(blob, header) {
     stats.lastLatencyMs = latency;
     stats.latenciesMs.push(latency);
     if (stats.latenciesMs.length > LATENCY_WINDOW) stats.latenciesMs.shift();
+    // The daemon's share (capture to send, one clock): the rest is network and browser.
+    stats.serverMs.push((header.sent_wall_s - header.capture_wall_s) * 1000);
+    if (stats.serverMs.length > LATENCY_WINDOW) stats.serverMs.shift();
+    $("latency-server").textContent = fmt(median(stats.serverMs));
     $("latency").textContent = fmt(latency);
     $("latency-p50").textContent = fmt(median(stats.latenciesMs));
     $("video-placeholder").hidden = true;
@@ -344,7 +351,7 @@ function connectControl() {
         $("takeover-box").hidden = false;
         $("takeover-text").textContent = reply.detail;
       }
-    } else if (reply.type === "ack" && reply.detail !== "teleop") {
+    } else if (reply.type === "ack" && !["teleop", "release"].includes(reply.detail)) {
       showMessage("control-message", reply.detail + ": ok · state " + reply.state, false);
     }
   };

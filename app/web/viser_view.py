@@ -251,7 +251,10 @@ class ViserView:
         while True:
             started = time.monotonic()
             self.update_pose()
-            if started >= next_map_s:
+            # Nobody watching: skip the map (viser replays the scene to a new client, and
+            # the next update follows within MAP_PERIOD_S). The pose still runs: it
+            # records the trail.
+            if started >= next_map_s and self.server is not None and self.server.get_clients():
                 next_map_s = started + MAP_PERIOD_S
                 # classify + PNG encoding of a 400x400 grid: keep it off the event loop.
                 await asyncio.to_thread(self.update_map)
