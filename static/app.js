@@ -235,7 +235,7 @@ function connectTelemetry() {
 
 // -- video ------------------------------------------------------------------------------
 
-const video = { header: null, url: null, arrivals: [], pending: false };
+const video = { ws: null, header: null, url: null, arrivals: [] };
 
 function median(values) {
   if (!values.length) return null;
@@ -244,8 +244,11 @@ function median(values) {
 }
 
 function connectVideo() {
-  const ws = new WebSocket(socketUrl("/ws/video"), socketProtocols());
+  // ?ack=2: the daemon keeps at most two frames unacknowledged, so a slow phone gets
+  // fewer but always the newest frames instead of a growing backlog.
+  const ws = new WebSocket(socketUrl("/ws/video?ack=2"), socketProtocols());
   ws.binaryType = "blob";
+  video.ws = ws;
   ws.onopen = () => setLink("conn-video", "on");
   ws.onmessage = (event) => {
     if (typeof event.data === "string") {
@@ -255,7 +258,7 @@ function connectVideo() {
     const header = video.header;
     video.header = null;
     if (!header) return;
-    showFrame(event.data, header);
+    showFrame(event.data, header, ws);
   };
   ws.onclose = () => {
     setLink("conn-video", "off");
@@ -263,12 +266,21 @@ function connectVideo() {
   };
 }
 
-function showFrame(blob, header) {
+function ackFrame(ws, seq) {
+  if (ws.readyState === WebSocket.OPEN) ws.send(JSON.stringify({ type: "ack", seq }));
+}
+
+function showFrame(blob, header, ws) {
   const img = $("video");
   const url = URL.createObjectURL(blob);
   const previous = video.url;
   video.url = url;
+  img.onerror = () => {
+    ackFrame(ws, header.seq);
+    URL.revokeObjectURL(url);
+  };
   img.onload = () => {
+    ackFrame(ws, header.seq);
     // Glass to browser: the frame is decoded and on screen now. Comparable only when
     // the robot's and this device's clocks agree (NTP); same machine in the tests.
     const latency = Date.now() - header.capture_wall_s * 1000;
