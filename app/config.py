@@ -284,11 +284,28 @@ class RuntimeConfig(StrictModel):
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
 
+WEB_TOKEN_PATTERN = r"^([A-Za-z0-9._~-]{16,})?$"
+"""A bearer token: empty, or 16+ characters that are also valid in a WebSocket
+subprotocol (browsers send it there, see ``app/web/auth.py``)."""
+
+
 class WebConfig(StrictModel):
     """The HTTP API and dashboard."""
 
     host: str = "127.0.0.1"
     port: Annotated[int, Field(ge=1, le=65535)] = 8080
+    token: Annotated[str, Field(pattern=WEB_TOKEN_PATTERN)] = ""
+    """Bearer token for every state-changing request; empty: the ``FLOORNAV_TOKEN``
+    environment variable, else ``token_file`` (generated on first start)."""
+    token_file: str = "~/.config/floornav/token"
+    require_token_for_status: bool = False
+    """Also require the token for status, config, metrics and the video and telemetry
+    sockets (otherwise anyone who can reach the port may watch)."""
+    allowed_origins: list[str] = []
+    """Browser origins (``http://host:port``) allowed to open WebSockets besides the
+    server's own."""
+    telemetry_hz: Annotated[float, Field(ge=1.0, le=30.0)] = 10.0
+    jpeg_quality: Annotated[int, Field(ge=10, le=95)] = 70
 
 
 class ViserConfig(StrictModel):

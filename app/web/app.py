@@ -1,0 +1,119 @@
+"""`create_app`: the FastAPI application around a `RobotService`.
+
+Routes (details in ``docs`` at ``/docs`` and in `app.web.routes` / `app.web.ws`):
+``/api/*`` REST, ``/metrics`` Prometheus, ``/ws/telemetry``, ``/ws/video``,
+``/ws/control``, the optional viser proxy router, and the dashboard's static files at
+``/`` (mounted last, so they never shadow the API).
+"""
+
+from __future__ import annotations
+
+import logging
+from pathlib import Path
+
+from fastapi import APIRouter, FastAPI, HTTPException, Request
+from fastapi.exceptions import RequestValidationError
+from fastapi.responses import JSONResponse
+from fastapi.staticfiles import StaticFiles
+
+from app.mapping.calibration import CalibrationError
+from app.runtime import CommandRefused
+from app.web.auth import BearerAuth
+from app.web.context import WebContext
+from app.web.metrics import build_registry
+from app.web.routes import build_api_router
+from app.web.service import RobotService
+from app.web.video import FrameEncoder
+from app.web.ws import build_ws_router
+
+log = logging.getLogger("floornav.web")
+
+
+def _validation_detail(exc: RequestValidationError) -> tuple[str, list[dict[str, object]]]:
+    """One readable message and the structured errors (without the offending input,
+    which may be NaN and would not even serialise as strict JSON)."""
+    errors: list[dict[str, object]] = []
+    parts = []
+    for error in exc.errors():
+        loc = [str(p) for p in error.get("loc", ())]
+        message = str(error.get("msg", "invalid"))
+        errors.append({"loc": loc, "msg": message, "type": str(error.get("type", ""))})
+        parts.append(f"{'.'.join(loc)}: {message}" if loc else message)
+    return "; ".join(parts) or "invalid request", errors
+
+
+def create_app(
+    service: RobotService,
+    *,
+    token: str,
+    static_dir: Path | None,
+    viser_router: APIRouter | None = None,
+) -> FastAPI:
+    """The web app for ``service``.
+
+    Parameters
+    ----------
+    service : the daemon (`app.runtime.Runtime`) or a fake
+    token : the bearer token (`app.web.auth.resolve_token`)
+    static_dir : the dashboard's files, served at ``/`` (index.html); None: no dashboard
+    viser_router : routes of the viser proxy, included as they are
+    """
+    if not token:
+        raise ValueError("create_app needs a non-empty token")
+    web_config = service.config.web
+    registry, web_metrics = build_registry(service)
+    ctx = WebContext(
+        service=service,
+        token=token,
+        auth=BearerAuth(token, protect_reads=web_config.require_token_for_status),
+        registry=registry,
+        metrics=web_metrics,
+        encoder=FrameEncoder(
+            web_config.jpeg_quality,
+            lambda: service.config.perception.safe_zone,
+            on_encoded=web_metrics.jpeg_encode_seconds.observe,
+        ),
+    )
+    app = FastAPI(
+        title="floornav",
+        summary="Monocular floor navigation robot: status, control, calibration, config",
+        description=(
+            "State-changing endpoints need `Authorization: Bearer <token>`. WebSockets "
+            "(not listed here): `/ws/telemetry`, `/ws/video`, `/ws/control`; a browser "
+            'authenticates them with the subprotocols `["floornav", "bearer.<token>"]`.'
+        ),
+        version="1",
+    )
+    app.state.web = ctx
+
+    @app.exception_handler(CommandRefused)
+    async def refused(request: Request, exc: CommandRefused) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=409)
+
+    @app.exception_handler(CalibrationError)
+    async def calibration_failed(request: Request, exc: CalibrationError) -> JSONResponse:
+        return JSONResponse({"detail": str(exc)}, status_code=422)
+
+    @app.exception_handler(RequestValidationError)
+    async def invalid_request(request: Request, exc: RequestValidationError) -> JSONResponse:
+        detail, errors = _validation_detail(exc)
+        return JSONResponse({"detail": detail, "errors": errors}, status_code=422)
+
+    @app.exception_handler(HTTPException)
+    async def http_error(request: Request, exc: HTTPException) -> JSONResponse:
+        return JSONResponse(
+            {"detail": str(exc.detail)}, status_code=exc.status_code, headers=exc.headers
+        )
+
+    @app.exception_handler(Exception)
+    async def unexpected(request: Request, exc: Exception) -> JSONResponse:
+        log.exception("%s %s failed", request.method, request.url.path)
+        return JSONResponse({"detail": f"internal error: {type(exc).__name__}"}, status_code=500)
+
+    app.include_router(build_api_router(ctx))
+    app.include_router(build_ws_router(ctx))
+    if viser_router is not None:
+        app.include_router(viser_router)
+    if static_dir is not None:
+        app.mount("/", StaticFiles(directory=static_dir, html=True), name="static")
+    return app

@@ -1,0 +1,308 @@
+"""The REST API under ``/api`` and ``/metrics``.
+
+Handlers are ``async def`` on purpose: they then run on the event loop's thread, the
+one the daemon's stages and the service's methods live on (a plain ``def`` would run in
+a worker thread and race with them).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import fnmatch
+from pathlib import Path
+from typing import Annotated, Any
+
+import cv2
+import numpy as np
+from fastapi import APIRouter, Body, Depends, HTTPException, Query, Request, Response
+from numpy.typing import NDArray
+from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
+from pydantic import ValidationError
+
+from app.config import FloornavConfig
+from app.mapping.calibration import (
+    BoardPlacement,
+    FloorCalibration,
+    find_chessboard,
+    floor_homography_from_chessboard,
+    homography_from_point_pairs,
+)
+from app.mapping.calibration_files import save_floor_calibration
+from app.web.context import WebContext, json_safe
+from app.web.schemas import (
+    ERROR_RESPONSES,
+    REFUSED_RESPONSE,
+    CalibrationRequest,
+    CalibrationResponse,
+    ChessboardCalibrationRequest,
+    CommandResponse,
+    EstopRequest,
+    EstopResetResponse,
+    TeleopReleaseRequest,
+    TeleopRequest,
+    check_board_pattern,
+)
+from app.web.video import encode_jpeg
+
+LIVE_KEYS = (
+    "steering.*",
+    "drive.max_*",
+    "safety.*",
+    "perception.method",
+    "perception.safe_zone.*",
+    "perception.smoothing_sigma_px",
+)
+"""Dotted configuration keys (``fnmatch`` patterns) that `Runtime.update_config`
+applies while running; everything else needs a restart."""
+PATTERN_REGEX = r"^[0-9]{1,2}x[0-9]{1,2}$"
+PREVIEW_JPEG_QUALITY = 85
+
+
+class ConfigPatchError(ValueError):
+    """A configuration patch names a key that does not exist or is not live."""
+
+
+def is_live_key(key: str) -> bool:
+    """True if the dotted ``key`` may be changed through ``PATCH /api/config``."""
+    return any(fnmatch.fnmatchcase(key, pattern) for pattern in LIVE_KEYS)
+
+
+def _merge(current: dict[str, Any], patch: dict[str, Any], path: str) -> None:
+    for key, value in patch.items():
+        dotted = f"{path}{key}"
+        if key not in current:
+            raise ConfigPatchError(f"{dotted}: not a configuration key")
+        if value is None:
+            raise ConfigPatchError(f"{dotted}: null is not a value (keys cannot be removed)")
+        if isinstance(current[key], dict):
+            if not isinstance(value, dict):
+                raise ConfigPatchError(f"{dotted}: expected an object of this section's keys")
+            _merge(current[key], value, dotted + ".")
+            continue
+        if not is_live_key(dotted):
+            raise ConfigPatchError(
+                f"{dotted}: cannot be changed while running (set it in config.toml and "
+                f"restart); live keys: {', '.join(LIVE_KEYS)}"
+            )
+        current[key] = value
+
+
+def apply_config_patch(config: FloornavConfig, patch: dict[str, Any]) -> FloornavConfig:
+    """A new configuration: ``patch`` (nested sections, like the TOML) merged into
+    ``config`` and validated as a whole.
+
+    Raises
+    ------
+    ConfigPatchError
+        A key is unknown or not live, a value is null, or a value is invalid; the
+        message names the dotted key.
+    """
+    merged = config.model_dump(mode="python")
+    _merge(merged, patch, "")
+    try:
+        return FloornavConfig.model_validate(merged)
+    except ValidationError as exc:
+        problems = []
+        for error in exc.errors():
+            key = ".".join(str(part) for part in error["loc"]) or "<root>"
+            problems.append(f"{key}: {error['msg']}")
+        raise ConfigPatchError("; ".join(problems)) from exc
+
+
+def public_config(config: FloornavConfig) -> dict[str, Any]:
+    """The configuration as JSON, with the token hidden."""
+    document = config.model_dump(mode="json")
+    if document["web"]["token"]:
+        document["web"]["token"] = "<set>"
+    return {"config": json_safe(document), "live_keys": list(LIVE_KEYS)}
+
+
+def _draw_preview(image: NDArray[np.uint8], pattern: tuple[int, int] | None) -> tuple[bytes, int]:
+    canvas = np.ascontiguousarray(image.copy())
+    found = 0
+    if pattern is not None:
+        corners = find_chessboard(image, pattern)
+        if corners is not None:
+            found = len(corners)
+            if canvas.ndim == 2:
+                canvas = np.asarray(cv2.cvtColor(canvas, cv2.COLOR_GRAY2BGR), dtype=np.uint8)
+            cv2.drawChessboardCorners(canvas, pattern, corners.reshape(-1, 1, 2), True)
+    return encode_jpeg(canvas, PREVIEW_JPEG_QUALITY), found
+
+
+def build_api_router(ctx: WebContext) -> APIRouter:
+    """``/api/*`` and ``/metrics`` for one app."""
+    service = ctx.service
+    write = [Depends(ctx.auth.require)]
+    read = [Depends(ctx.auth.require_for_reads)]
+    router = APIRouter()
+
+    def command_response(detail: str = "") -> CommandResponse:
+        return CommandResponse(state=service.state, detail=detail)
+
+    @router.get("/api/status", dependencies=read, tags=["status"], responses=ERROR_RESPONSES)
+    async def get_status() -> dict[str, Any]:
+        """The daemon's snapshot: state, fps, frame age, stage timings, pose, devices."""
+        result: dict[str, Any] = json_safe(service.status())
+        return result
+
+    @router.get(
+        "/api/auth", dependencies=write, status_code=204, tags=["status"], responses=ERROR_RESPONSES
+    )
+    async def check_token() -> Response:
+        """204 if the bearer token is right (the dashboard's login check), else 401."""
+        return Response(status_code=204)
+
+    @router.post(
+        "/api/start",
+        dependencies=write,
+        tags=["control"],
+        responses={**ERROR_RESPONSES, **REFUSED_RESPONSE},
+    )
+    async def start() -> CommandResponse:
+        """Start exploring (409 with the reason when the state does not allow it)."""
+        await service.start()
+        return command_response()
+
+    @router.post("/api/stop", dependencies=write, tags=["control"], responses=ERROR_RESPONSES)
+    async def stop() -> CommandResponse:
+        """Stop exploring; the motors go to zero at once (teleop stays possible)."""
+        await service.stop()
+        return command_response()
+
+    @router.post("/api/estop", dependencies=write, tags=["control"], responses=ERROR_RESPONSES)
+    async def estop(
+        request: Request, body: Annotated[EstopRequest | None, Body()] = None
+    ) -> CommandResponse:
+        """Latch the e-stop (any authenticated client may); zero until reset."""
+        client = request.client.host if request.client else "unknown"
+        service.estop(f"{(body or EstopRequest()).source} ({client})")
+        return command_response()
+
+    @router.post(
+        "/api/estop/reset", dependencies=write, tags=["control"], responses=ERROR_RESPONSES
+    )
+    async def reset_estop() -> EstopResetResponse:
+        """Clear a latched e-stop; ``was_estopped`` says whether one was latched."""
+        was = service.reset_estop()
+        return EstopResetResponse(state=service.state, was_estopped=was)
+
+    @router.post(
+        "/api/teleop",
+        dependencies=write,
+        tags=["control"],
+        responses={**ERROR_RESPONSES, **REFUSED_RESPONSE},
+    )
+    async def teleop(body: TeleopRequest) -> CommandResponse:
+        """Drive by hand; repeat at >= 10 Hz, the robot stops 0.5 s after the last one."""
+        service.teleop(body.driver, body.v_m_s, body.omega_rad_s, take_over=body.take_over)
+        return command_response()
+
+    @router.post(
+        "/api/teleop/release", dependencies=write, tags=["control"], responses=ERROR_RESPONSES
+    )
+    async def release_teleop(
+        body: Annotated[TeleopReleaseRequest | None, Body()] = None,
+    ) -> CommandResponse:
+        """End teleop (of ``driver`` only, if given)."""
+        service.release_teleop(body.driver if body else None)
+        return command_response()
+
+    @router.post(
+        "/api/calibrate",
+        dependencies=write,
+        tags=["calibration"],
+        responses={**ERROR_RESPONSES, **REFUSED_RESPONSE},
+    )
+    async def calibrate(body: CalibrationRequest) -> CalibrationResponse:
+        """Fit the floor homography on the current frame (a chessboard on the floor, or
+        4+ clicked pixels with their floor positions) and save it; the map restarts."""
+        intrinsics = service.intrinsics
+        detected: dict[str, NDArray[np.float32] | None] = {}
+
+        def fit(image: NDArray[np.uint8]) -> FloorCalibration:
+            if isinstance(body, ChessboardCalibrationRequest):
+                pattern = check_board_pattern(body.pattern)
+                placement = BoardPlacement(body.board_x_m, body.board_y_m, body.board_yaw_rad)
+                calibration = floor_homography_from_chessboard(
+                    image, pattern, body.square_m, intrinsics=intrinsics, placement=placement
+                )
+                # Detected again (cheap next to the fit) so the wizard can draw them.
+                detected["corners"] = find_chessboard(image, pattern)
+                return calibration
+            height, width = image.shape[:2]
+            return homography_from_point_pairs(
+                np.asarray(body.image_points_px, dtype=np.float64),
+                np.asarray(body.ground_points_m, dtype=np.float64),
+                (width, height),
+                intrinsics=intrinsics,
+            )
+
+        path = Path(service.config.mapping.floor_calibration_file)
+
+        def save(calibration: FloorCalibration) -> None:
+            save_floor_calibration(path, calibration)
+
+        calibration = await service.calibrate_with(fit, save if body.save else None)
+        corners = detected.get("corners")
+        return CalibrationResponse(
+            reprojection_rms_px=calibration.reprojection_rms_px,
+            ground_rms_m=calibration.ground_rms_m,
+            points=calibration.points,
+            inliers=calibration.inliers,
+            image_size=calibration.image_size,
+            board_origin_px=calibration.board_origin_px,
+            corners_px=None if corners is None else [(float(u), float(v)) for u, v in corners],
+            saved_to=str(path) if body.save else None,
+        )
+
+    @router.get(
+        "/api/calibrate/preview",
+        dependencies=read,
+        tags=["calibration"],
+        response_class=Response,
+        responses={200: {"content": {"image/jpeg": {}}}, **ERROR_RESPONSES, **REFUSED_RESPONSE},
+    )
+    async def calibrate_preview(
+        pattern: Annotated[str | None, Query(pattern=PATTERN_REGEX)] = None,
+    ) -> Response:
+        """The newest camera frame as JPEG; with ``pattern`` (COLSxROWS) the detected
+        chessboard corners are drawn and their count is in ``X-Chessboard-Corners``."""
+        frame = service.frames.peek()
+        if frame is None:
+            raise HTTPException(409, detail="no camera frame yet")
+        try:
+            size = check_board_pattern(pattern) if pattern is not None else None
+        except ValueError as exc:
+            raise HTTPException(422, detail=str(exc)) from exc
+        jpeg, found = await asyncio.to_thread(_draw_preview, frame.image, size)
+        return Response(jpeg, media_type="image/jpeg", headers={"X-Chessboard-Corners": str(found)})
+
+    @router.get("/api/config", dependencies=read, tags=["config"], responses=ERROR_RESPONSES)
+    async def get_config() -> dict[str, Any]:
+        """The running configuration (``web.token`` hidden) and the live-key patterns."""
+        return public_config(service.config)
+
+    @router.patch("/api/config", dependencies=write, tags=["config"], responses=ERROR_RESPONSES)
+    async def patch_config(patch: Annotated[dict[str, Any], Body()]) -> dict[str, Any]:
+        """Merge nested sections (``{"steering": {"cruise_speed_m_s": 0.2}}``) into the
+        running configuration; only live keys are accepted (422 names any other)."""
+        try:
+            new = apply_config_patch(service.config, patch)
+        except ConfigPatchError as exc:
+            raise HTTPException(422, detail=str(exc)) from exc
+        service.update_config(new)
+        return public_config(new)
+
+    @router.get(
+        "/metrics",
+        dependencies=read,
+        tags=["status"],
+        response_class=Response,
+        responses={200: {"content": {CONTENT_TYPE_LATEST: {}}}, **ERROR_RESPONSES},
+    )
+    async def metrics() -> Response:
+        """Prometheus text format."""
+        return Response(generate_latest(ctx.registry), media_type=CONTENT_TYPE_LATEST)
+
+    return router

@@ -1,0 +1,197 @@
+"""A real daemon for the browser tests: the `Runtime` on the simulator, the web app
+(uvicorn) and the viser view, all in one background thread with its own event loop;
+Playwright (sync) drives Debian's chromium from the test thread.
+
+Sync Playwright refuses to run inside an event loop, hence the thread. The server is
+session-scoped (numba compiles the pipeline on the first frames); each test starts from
+a clean state (`robot` fixture: no e-stop, no teleop driver).
+"""
+
+from __future__ import annotations
+
+import asyncio
+import contextlib
+import socket
+import threading
+import time
+from collections.abc import Callable, Iterator
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Any, TypeVar
+
+import pytest
+import uvicorn
+from fastapi import APIRouter
+
+from app.config import load_config
+from app.devices import open_devices
+from app.runtime import Runtime
+from app.web import create_app
+from app.web.map_view import map_router
+from app.web.viser_proxy import viser_router
+from app.web.viser_view import ViserView
+
+ROOT = Path(__file__).resolve().parents[2]
+CHROMIUM = Path("/usr/bin/chromium")
+SCREENSHOTS = ROOT / "docs" / "screenshots"
+TOKEN = "browser-test-token-0123456789"
+# measured-facts: Debian's chromium headless, no sandbox (root in CI), software GL.
+CHROMIUM_FLAGS = [
+    "--headless",
+    "--no-sandbox",
+    "--disable-gpu",
+    "--disable-quic",
+    "--no-first-run",
+    "--disable-background-networking",
+    "--disable-component-update",
+    "--disable-sync",
+]
+FIRST_FRAME_TIMEOUT_S = 240.0  # a cold numba cache compiles the pipeline first
+
+T = TypeVar("T")
+
+
+def free_port() -> int:
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])
+
+
+@dataclass
+class LiveServer:
+    """Handles on the running daemon, for the tests' thread."""
+
+    base_url: str
+    runtime: Runtime
+    view: ViserView
+    loop: asyncio.AbstractEventLoop
+    errors: list[BaseException] = field(default_factory=list)
+
+    def call(self, fn: Callable[[], T], timeout_s: float = 10.0) -> T:
+        """Run ``fn`` in the daemon's loop thread (the Runtime's methods expect that)."""
+
+        async def run() -> T:
+            return fn()
+
+        return asyncio.run_coroutine_threadsafe(run(), self.loop).result(timeout_s)
+
+    def status(self) -> dict[str, Any]:
+        return self.call(self.runtime.status)
+
+    def sim_pose(self) -> tuple[float, float, float]:
+        sim = self.runtime.devices.sim
+        assert sim is not None
+        pose = sim.robot.pose
+        return (pose.x_m, pose.y_m, pose.theta_rad)
+
+
+def _serve(ready: threading.Event, holder: dict[str, Any], stop: threading.Event) -> None:
+    async def main() -> None:
+        web_port, viser_port = free_port(), free_port()
+        config = load_config(
+            ROOT / "config.toml",
+            runtime={"autostart": False, "log_level": "warning"},
+            viser={"enabled": True, "port": viser_port},
+        )
+        with open_devices(config) as devices:
+            runtime = Runtime(config, devices)
+            if not hasattr(runtime, "intrinsics"):
+                # The API's RobotService reads the lens model from the service; until
+                # Runtime carries it, hand it the devices' (None on the simulator).
+                runtime.intrinsics = devices.intrinsics  # type: ignore[attr-defined]
+            view = ViserView(runtime, port=viser_port)
+            view.start()
+            extra = APIRouter()
+            extra.include_router(viser_router(view.port))
+            extra.include_router(map_router(runtime))
+            app = create_app(runtime, token=TOKEN, static_dir=ROOT / "static", viser_router=extra)
+            server = uvicorn.Server(
+                uvicorn.Config(
+                    app, host="127.0.0.1", port=web_port, log_level="warning", lifespan="off"
+                )
+            )
+            loop = asyncio.get_running_loop()
+            holder["server"] = LiveServer(f"http://127.0.0.1:{web_port}", runtime, view, loop)
+            run_task = asyncio.create_task(runtime.run(install_signals=False))
+            web_task = asyncio.create_task(server.serve())
+            view_task = asyncio.create_task(view.run())
+            ready.set()
+            try:
+                while not stop.is_set() and not run_task.done():
+                    await asyncio.sleep(0.1)
+            finally:
+                server.should_exit = True
+                runtime.request_shutdown("tests finished")
+                view_task.cancel()
+                with contextlib.suppress(asyncio.CancelledError):
+                    await view_task
+                await asyncio.gather(run_task, web_task, return_exceptions=True)
+                view.stop()
+
+    try:
+        asyncio.run(main())
+    except BaseException as exc:  # reported by the fixture
+        holder["error"] = exc
+        ready.set()
+
+
+@pytest.fixture(scope="session")
+def live_server() -> Iterator[LiveServer]:
+    if not CHROMIUM.exists():
+        pytest.skip("Debian's chromium is not installed (apt-get install chromium)")
+    ready, stop = threading.Event(), threading.Event()
+    holder: dict[str, Any] = {}
+    thread = threading.Thread(target=_serve, args=(ready, holder, stop), daemon=True, name="daemon")
+    thread.start()
+    ready.wait(60)
+    if "error" in holder or "server" not in holder:
+        raise RuntimeError(f"the test daemon did not start: {holder.get('error')!r}")
+    server: LiveServer = holder["server"]
+    deadline = time.monotonic() + FIRST_FRAME_TIMEOUT_S
+    while server.runtime.floors.peek() is None or server.runtime.maps.peek() is None:
+        if time.monotonic() > deadline:
+            raise RuntimeError("no perceived frame within the start-up timeout")
+        time.sleep(0.2)
+    try:
+        yield server
+    finally:
+        stop.set()
+        thread.join(30)
+
+
+@pytest.fixture
+def robot(live_server: LiveServer) -> LiveServer:
+    """The daemon with no e-stop latched and nobody driving, and the Uno connected."""
+
+    def clean() -> None:
+        live_server.runtime.reset_estop()
+        live_server.runtime.release_teleop()
+
+    live_server.call(clean)
+    deadline = time.monotonic() + 15
+    while live_server.status()["serial"]["state"] != "connected" or live_server.status()["fault"]:
+        if time.monotonic() > deadline:
+            pytest.fail(f"daemon not healthy: {live_server.status()['fault']}")
+        time.sleep(0.1)
+    return live_server
+
+
+@pytest.fixture(scope="session")
+def browser_type_launch_args(browser_type_launch_args: dict[str, Any]) -> dict[str, Any]:
+    return {
+        **browser_type_launch_args,
+        "executable_path": str(CHROMIUM),
+        "args": CHROMIUM_FLAGS,
+        "headless": True,
+    }
+
+
+@pytest.fixture(scope="session")
+def browser_context_args(browser_context_args: dict[str, Any]) -> dict[str, Any]:
+    return {**browser_context_args, "viewport": {"width": 1280, "height": 900}}
+
+
+@pytest.fixture(scope="session")
+def screenshots() -> Path:
+    SCREENSHOTS.mkdir(parents=True, exist_ok=True)
+    return SCREENSHOTS

@@ -1,0 +1,183 @@
+"""The dashboard in Debian's chromium against a real daemon on the simulator."""
+
+from __future__ import annotations
+
+import math
+import re
+import statistics
+import time
+from pathlib import Path
+
+import pytest
+from playwright.sync_api import Page, expect
+
+from tests.browser.conftest import TOKEN, LiveServer
+
+pytestmark = pytest.mark.browser
+
+LATENCY_FRAMES = 30
+
+
+def open_dashboard(page: Page, server: LiveServer) -> None:
+    page.goto(f"{server.base_url}/?token={TOKEN}")
+    # The control socket greets with our driver name once the token is accepted.
+    expect(page.locator("#me")).to_have_text(re.compile(r"^ws-\d+$"), timeout=15_000)
+    expect(page.locator("#conn-control")).to_have_class("dot on")
+
+
+def wait_for(condition: object, timeout_s: float, what: str) -> None:
+    assert callable(condition)
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(0.02)
+
+
+def test_video_frames_arrive_with_low_latency(
+    page: Page, robot: LiveServer, screenshots: Path
+) -> None:
+    open_dashboard(page, robot)
+    expect(page.locator("#latency")).to_have_text(re.compile(r"^-?\d+$"), timeout=20_000)
+    start = page.evaluate("window.floornav.frames")
+    page.wait_for_function(
+        f"window.floornav.frames >= {start + LATENCY_FRAMES}", timeout=LATENCY_FRAMES * 1000
+    )
+    latencies = page.evaluate(f"window.floornav.latenciesMs.slice(-{LATENCY_FRAMES})")
+    server_part = page.evaluate(f"window.floornav.serverMs.slice(-{LATENCY_FRAMES})")
+    assert len(latencies) == LATENCY_FRAMES
+    ordered = sorted(latencies)
+    median = statistics.median(ordered)
+    p95 = ordered[min(len(ordered) - 1, math.ceil(0.95 * len(ordered)) - 1)]
+    print(
+        f"\nglass-to-browser latency over {len(latencies)} frames: "
+        f"median {median:.1f} ms, p95 {p95:.1f} ms, max {ordered[-1]:.1f} ms; "
+        f"capture-to-send in the daemon median {statistics.median(server_part):.1f} ms"
+    )
+    status = robot.status()
+    print(
+        f"daemon meanwhile: perception {status['stage_ms'].get('perception')} ms, "
+        f"frame age at pick-up {status['pickup_age_ms']} ms, {status['fps']} fps"
+    )
+    # The map and the health table are filled in too.
+    expect(page.locator("#map")).to_have_attribute("src", re.compile("^blob:"))
+    expect(page.locator("#h-serial")).to_contain_text("connected")
+    page.wait_for_timeout(700)  # one more map refresh with the frames' evidence
+    page.screenshot(path=str(screenshots / "dashboard.png"), full_page=True)
+    assert median <= 100.0, f"median glass-to-browser latency {median:.1f} ms > 100 ms"
+
+
+def test_keyboard_teleop_moves_and_stops_on_key_up(page: Page, robot: LiveServer) -> None:
+    open_dashboard(page, robot)
+    before = robot.sim_pose()
+    page.locator("body").click(position={"x": 5, "y": 200})  # focus the page, not a button
+    page.keyboard.down("ArrowUp")
+    try:
+        wait_for(lambda: robot.status()["state"] == "teleop", 2.0, "teleop state")
+        page.wait_for_timeout(1000)
+        moved = math.dist(before[:2], robot.sim_pose()[:2])
+        assert moved > 0.03, f"the simulated robot moved only {moved:.3f} m in 1 s of ArrowUp"
+    finally:
+        page.keyboard.up("ArrowUp")
+    released = time.monotonic()
+
+    def stopped() -> bool:
+        drive = robot.runtime.drives.peek()
+        return drive is not None and drive.twist.v_m_s == 0 and drive.twist.omega_rad_s == 0
+
+    wait_for(stopped, 0.6, "a zero command within 0.6 s of the key-up")
+    print(f"\nkey-up to zero command: {(time.monotonic() - released) * 1000:.0f} ms")
+    wait_for(lambda: robot.status()["teleop_driver"] is None, 1.0, "teleop released")
+
+
+def test_estop_button_stops_the_robot(page: Page, robot: LiveServer, screenshots: Path) -> None:
+    open_dashboard(page, robot)
+    page.locator("body").click(position={"x": 5, "y": 200})
+    page.keyboard.down("ArrowUp")
+    try:
+        wait_for(lambda: robot.status()["state"] == "teleop", 2.0, "teleop state")
+        page.locator("#estop").click()
+        wait_for(lambda: robot.status()["state"] == "estopped", 1.0, "state estopped")
+    finally:
+        page.keyboard.up("ArrowUp")
+    wait_for(
+        lambda: (
+            (robot.status()["command"] or {}).get("v_m_s") == 0.0
+            and robot.status()["command"]["left_pwm"] == 0
+            and robot.status()["command"]["right_pwm"] == 0
+        ),
+        1.0,
+        "a zero command",
+    )
+    expect(page.locator("#state")).to_have_text("estopped")
+    expect(page.locator("#banner")).to_contain_text("E-STOP latched")
+    page.screenshot(path=str(screenshots / "estop.png"), full_page=True)
+    # Teleop is refused while latched, and the dashboard says so.
+    page.keyboard.down("ArrowLeft")
+    page.wait_for_timeout(300)
+    page.keyboard.up("ArrowLeft")
+    expect(page.locator("#control-message")).to_contain_text("e-stop is latched")
+    assert robot.status()["state"] == "estopped"
+    # Reset from the dashboard.
+    page.locator("#estop-reset").click()
+    wait_for(lambda: robot.status()["state"] != "estopped", 2.0, "e-stop reset")
+
+
+def test_space_bar_is_an_estop(page: Page, robot: LiveServer) -> None:
+    open_dashboard(page, robot)
+    page.locator("body").click(position={"x": 5, "y": 200})
+    page.keyboard.press("Space")
+    wait_for(lambda: robot.status()["state"] == "estopped", 1.0, "state estopped")
+
+
+def test_calibration_wizard_shows_why_it_failed(
+    page: Page, robot: LiveServer, screenshots: Path
+) -> None:
+    open_dashboard(page, robot)
+    page.locator("#calib-open").click()
+    page.locator("#calib-detect").click()
+    expect(page.locator("#calib-preview")).to_be_visible(timeout=10_000)
+    expect(page.locator("#calib-info")).to_contain_text("No 9x6 board found")
+    page.locator("#calib-accept").click()
+    error = page.locator("#calib-error")
+    expect(error).to_be_visible(timeout=20_000)
+    text = error.inner_text()
+    print(f"\ncalibration error shown: {text}")
+    assert "422" in text or "409" in text
+    assert robot.status()["state"] != "calibrating"
+    page.screenshot(path=str(screenshots / "calibration.png"))
+    page.locator("#calib-cancel").click()
+    expect(page.locator("#calib-dialog")).not_to_be_visible()
+
+
+def test_safe_zone_editor_patches_the_live_config(page: Page, robot: LiveServer) -> None:
+    open_dashboard(page, robot)
+    page.locator("#zone-toggle").click()
+    slider = page.locator("#zone-top_y_frac")
+    expect(slider).to_have_value("0.8", timeout=5_000)
+    slider.fill("0.75")
+    page.locator("#zone-apply").click()
+    expect(page.locator("#zone-message")).to_contain_text("applied")
+    assert robot.runtime.config.perception.safe_zone.top_y_frac == pytest.approx(0.75)
+    # An impossible zone is refused with the reason.
+    page.locator("#zone-top_y_frac").fill("1")
+    page.locator("#zone-bottom_y_frac").fill("0.5")
+    page.locator("#zone-apply").click()
+    expect(page.locator("#zone-message")).to_contain_text("refused")
+    assert robot.runtime.config.perception.safe_zone.top_y_frac == pytest.approx(0.75)
+    page.locator("#zone-revert").click()
+    page.locator("#zone-top_y_frac").fill("0.8")
+    page.locator("#zone-apply").click()
+    expect(page.locator("#zone-message")).to_contain_text("applied")
+    assert robot.runtime.config.perception.safe_zone.top_y_frac == pytest.approx(0.8)
+
+
+def test_phone_layout(page: Page, robot: LiveServer, screenshots: Path) -> None:
+    page.set_viewport_size({"width": 390, "height": 844})
+    open_dashboard(page, robot)
+    page.wait_for_function("window.floornav.frames > 3", timeout=10_000)
+    estop_box = page.locator("#estop").bounding_box()
+    assert estop_box is not None and estop_box["y"] + estop_box["height"] < 844 / 3
+    # Nothing wider than the screen: no sideways scrolling on a phone.
+    assert page.evaluate("document.documentElement.scrollWidth") <= 390
+    page.screenshot(path=str(screenshots / "dashboard-phone.png"), full_page=True)

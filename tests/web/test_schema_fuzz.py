@@ -1,0 +1,50 @@
+"""Schemathesis over the OpenAPI schema: generated requests (valid and not) never make
+the server fail (no 5xx), with the token and without."""
+
+from __future__ import annotations
+
+import tempfile
+from pathlib import Path
+
+import pytest
+import schemathesis
+from hypothesis import HealthCheck, settings
+from schemathesis.checks import not_a_server_error
+
+from app.config import FloornavConfig
+from app.web import create_app
+
+from ..conftest import room_scene
+from .conftest import AUTH, TOKEN
+from .fakes import FakeService, floor_msg
+
+# The schema is loaded at import (schemathesis parametrizes at collection), so the app
+# is built here; a calibration that happens to fit is saved into a throwaway folder.
+_CALIBRATION_DIR = Path(tempfile.mkdtemp(prefix="floornav-fuzz-"))
+_base = FloornavConfig()
+_service = FakeService(
+    _base.model_copy(
+        update={
+            "mapping": _base.mapping.model_copy(
+                update={"floor_calibration_file": str(_CALIBRATION_DIR / "floor.json")}
+            )
+        }
+    )
+)
+_service.publish_frame(room_scene(320, 240)[0])
+_service.floors.publish(floor_msg(1))
+_app = create_app(_service, token=TOKEN, static_dir=None)
+schema = schemathesis.openapi.from_asgi("/openapi.json", _app)
+
+
+@pytest.mark.slow  # about 10 s: chessboard searches on generated calibration requests
+@schema.parametrize()
+@settings(max_examples=15, deadline=None, suppress_health_check=list(HealthCheck))
+def test_no_server_errors_with_the_token(case: schemathesis.Case) -> None:
+    case.call_and_validate(headers=AUTH, checks=[not_a_server_error])
+
+
+@schema.parametrize()
+@settings(max_examples=5, deadline=None, suppress_health_check=list(HealthCheck))
+def test_no_server_errors_without_the_token(case: schemathesis.Case) -> None:
+    case.call_and_validate(checks=[not_a_server_error])
