@@ -13,6 +13,7 @@ from app.devices import open_devices
 from app.fileio import json_safe, write_bytes_atomic
 from app.logs import setup_logging
 from app.runtime import Runtime
+from app.web.auth import resolve_token
 
 log = logging.getLogger("floornav")
 
@@ -40,8 +41,11 @@ def write_report(path: Path, report: dict[str, Any]) -> None:
     write_bytes_atomic(path, (json.dumps(json_safe(report), indent=2) + "\n").encode())
 
 
-async def _serve(runtime: Runtime, duration_s: float | None) -> None:
-    await runtime.run(duration_s=duration_s)
+async def _serve(runtime: Runtime, duration_s: float | None, token: str) -> None:
+    from app.web.server import WebService
+
+    web = WebService(runtime, token=token)
+    await runtime.run(duration_s=duration_s, services=[web])
 
 
 def run_daemon(
@@ -53,8 +57,16 @@ def run_daemon(
 ) -> int:
     """Run until stopped (or ``duration_s``); 0 on a clean stop, 1 if a stage crashed."""
     setup_logging(config.runtime.log_level, json_lines=config.runtime.log_json)
+    token, generated = resolve_token(config)
     with open_devices(config) as devices:
         print(banner(config, config_source, devices.description), flush=True)
+        if generated:
+            # Printed once, on the run that created it; it is kept 0600 in token_file.
+            print(
+                f"  token    {token}  (new; stored in {config.web.token_file}, "
+                "give it to the dashboard once)",
+                flush=True,
+            )
         if devices.calibration is None:
             log.warning(
                 "autonomy unavailable, teleop allowed: %s",
@@ -64,7 +76,7 @@ def run_daemon(
         runtime = Runtime(config, devices)
         code = 0
         try:
-            asyncio.run(_serve(runtime, duration_s))
+            asyncio.run(_serve(runtime, duration_s, token))
         except KeyboardInterrupt:
             pass
         except Exception as exc:  # a stage crashed: motors are already stopped

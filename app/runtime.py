@@ -30,7 +30,7 @@ import signal
 import statistics
 import time
 from collections import deque
-from collections.abc import Awaitable, Callable, Coroutine
+from collections.abc import Awaitable, Callable, Coroutine, Sequence
 from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
@@ -38,6 +38,7 @@ from typing import Any, Protocol, TypeVar
 import numpy as np
 from numpy.typing import NDArray
 
+from app import systemd
 from app.channels import LatestSlot, SlotReader
 from app.config import FloornavConfig, PerceptionConfig
 from app.control.kinematics import RateLimiter, WheelOdometry, twist_to_pwm
@@ -68,6 +69,16 @@ class Segmenter(Protocol):
     """What perception needs (`FloorSegmenter`; tests pass slow or failing ones)."""
 
     def segment(self, image: NDArray[np.uint8]) -> FloorResult: ...
+
+
+class Service(Protocol):
+    """Something that runs beside the stages for the whole run (the web server)."""
+
+    name: str
+
+    async def serve(self) -> None: ...
+
+    def request_stop(self) -> None: ...
 
 
 class CommandRefusedError(Exception):
@@ -108,9 +119,12 @@ class StageClock:
     def __init__(self, maxlen: int = 100_000) -> None:
         self.maxlen = maxlen
         self.samples: dict[str, deque[float]] = {}
+        self.totals: dict[str, int] = {}
+        """Samples ever added per stage (the windows drop old ones; metrics need counts)."""
 
     def add(self, stage: str, seconds: float) -> None:
         self.samples.setdefault(stage, deque(maxlen=self.maxlen)).append(seconds)
+        self.totals[stage] = self.totals.get(stage, 0) + 1
 
     def summary_ms(self) -> dict[str, dict[str, float | None]]:
         return {name: percentiles_ms(values) for name, values in self.samples.items()}
@@ -229,6 +243,7 @@ class Runtime:
         self.stages = StageClock()
         self.frame_ages: deque[float] = deque(maxlen=100_000)
         self.latencies: deque[float] = deque(maxlen=100_000)
+        self.latencies_total = 0
         self.counters = Counters()
         self.steering_reasons: dict[str, int] = {}
         self.transitions: deque[Transition] = deque(maxlen=200)
@@ -266,6 +281,8 @@ class Runtime:
         self._clearance_active = False
         self._loop: asyncio.AbstractEventLoop | None = None
         self._perception_config_changed = False
+        self._services: list[Service] = []
+        self._service_tasks: list[asyncio.Task[None]] = []
         if self.calibration is not None:
             self.mapper = GroundMapper(self.calibration, config.mapping, config.camera)
 
@@ -409,9 +426,17 @@ class Runtime:
 
     # -- the run --------------------------------------------------------------------------
 
-    async def run(self, *, duration_s: float | None = None, install_signals: bool = True) -> None:
+    async def run(
+        self,
+        *,
+        duration_s: float | None = None,
+        install_signals: bool = True,
+        services: Sequence[Service] = (),
+    ) -> None:
         """Run until `request_shutdown`, a signal, ``duration_s`` or a stage crash (which
-        is re-raised after the motors are stopped)."""
+        is re-raised after the motors are stopped). ``services`` run beside the stages
+        (a crash of one ends the run like a stage's) and are asked to stop first."""
+        self._services = list(services)
         self._loop = asyncio.get_running_loop()
         self.link = self.devices.make_link()
         self.rss_start_mb = rss_mb()
@@ -433,6 +458,12 @@ class Runtime:
                     }
                     for name, coro in stages.items():
                         group.create_task(self._guard(name, coro), name=name)
+                    for service in self._services:
+                        self._service_tasks.append(
+                            group.create_task(
+                                self._guard(service.name, service.serve()), name=service.name
+                            )
+                        )
                     if self.config.runtime.autostart:
                         group.create_task(self._guard("autostart", self._autostart()))
                     group.create_task(self._until_shutdown(duration_s), name="shutdown")
@@ -466,6 +497,11 @@ class Runtime:
         except TimeoutError:
             self._shutdown_reason = f"duration {duration_s:g} s reached"
             log.info("run duration reached", extra={"event": "shutdown", "duration_s": duration_s})
+        # Let services close their sockets and connections before the group cancels.
+        for service in self._services:
+            service.request_stop()
+        if self._service_tasks:
+            await asyncio.wait(self._service_tasks, timeout=3.0)
         raise _ShutdownRequested(self._shutdown_reason)
 
     async def _guard(self, name: str, coro: Awaitable[None]) -> None:
@@ -700,7 +736,13 @@ class Runtime:
         assert link is not None
         period = self.config.drive.control_period_ms / 1000.0
         was_connected = False
+        watchdog_s = systemd.watchdog_interval_s()
+        next_ping_s = 0.0
         while True:
+            if watchdog_s is not None and self.clock() >= next_ping_s:
+                # systemd restarts the daemon if these stop (a hung event loop).
+                systemd.notify(f"WATCHDOG=1\nSTATUS={self.state.value}")
+                next_ping_s = self.clock() + watchdog_s
             problems = []
             if link.state is not DeviceState.CONNECTED:
                 problems.append(f"Uno {link.state.value}: {link.status().detail}")
@@ -769,6 +811,7 @@ class Runtime:
             if new_autonomy:
                 self._last_latency_origin = out.origin_s
                 self.latencies.append(sent - out.origin_s)
+                self.latencies_total += 1
             decision = self.decisions.peek()
             self.drives.publish(
                 DriveMsg(

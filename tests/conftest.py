@@ -44,3 +44,9 @@ def room_scene(
 @pytest.fixture
 def room() -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
     return room_scene()
+
+
+def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
+    """Browser tests last: Playwright's sync API keeps an event loop running in the main
+    thread once its session starts, and pytest-asyncio tests cannot run after that."""
+    items.sort(key=lambda item: item.get_closest_marker("browser") is not None)

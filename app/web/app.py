@@ -17,7 +17,7 @@ from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 
 from app.mapping.calibration import CalibrationError
-from app.runtime import CommandRefused
+from app.runtime import CommandRefusedError
 from app.web.auth import BearerAuth
 from app.web.context import WebContext
 from app.web.metrics import build_registry
@@ -86,8 +86,8 @@ def create_app(
     )
     app.state.web = ctx
 
-    @app.exception_handler(CommandRefused)
-    async def refused(request: Request, exc: CommandRefused) -> JSONResponse:
+    @app.exception_handler(CommandRefusedError)
+    async def refused(request: Request, exc: CommandRefusedError) -> JSONResponse:
         return JSONResponse({"detail": str(exc)}, status_code=409)
 
     @app.exception_handler(CalibrationError)

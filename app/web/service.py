@@ -126,7 +126,7 @@ class RobotService(Protocol):
         """A JSON-ready snapshot (see `Runtime.status`)."""
 
     async def start(self) -> None:
-        """Start exploring; raises `app.runtime.CommandRefused` saying why not."""
+        """Start exploring; raises `app.runtime.CommandRefusedError` saying why not."""
 
     async def stop(self) -> None: ...
 
@@ -138,14 +138,14 @@ class RobotService(Protocol):
     def teleop(
         self, driver: str, v_m_s: float, omega_rad_s: float, *, take_over: bool = False
     ) -> None:
-        """Drive by hand for ``safety.teleop_timeout_s``; raises CommandRefused."""
+        """Drive by hand for ``safety.teleop_timeout_s``; raises CommandRefusedError."""
 
     def release_teleop(self, driver: str | None) -> None: ...
 
     async def calibrate_with(
         self, fit: CalibrationFit, save: CalibrationSave | None
     ) -> FloorCalibration:
-        """Fit on the newest frame (raises CalibrationError or CommandRefused) and save."""
+        """Fit on the newest frame (raises CalibrationError or CommandRefusedError) and save."""
 
     def update_config(self, config: FloornavConfig) -> None:
         """Apply a configuration whose only changes are live keys."""

@@ -12,6 +12,7 @@ from __future__ import annotations
 import asyncio
 import contextlib
 import logging
+from collections.abc import Callable
 
 import httpx
 from fastapi import APIRouter, Request, WebSocket
@@ -27,12 +28,14 @@ log = logging.getLogger("floornav.viser")
 _HOP_BY_HOP = {"connection", "keep-alive", "transfer-encoding", "content-length", "server", "date"}
 
 
-def viser_router(viser_port: int, viser_host: str = "127.0.0.1") -> APIRouter:
+def viser_router(viser_port: int | Callable[[], int], viser_host: str = "127.0.0.1") -> APIRouter:
     """Routes ``GET /viser/{path}`` and ``WebSocket /viser`` relayed to the viser server
-    at ``viser_host:viser_port``."""
+    at ``viser_host:viser_port``. The port may be a callable, read at each request: the
+    view binds (and reads back) its port only when the app starts."""
     router = APIRouter()
-    base_http = f"http://{viser_host}:{viser_port}"
-    base_ws = f"ws://{viser_host}:{viser_port}/"
+
+    def port() -> int:
+        return viser_port() if callable(viser_port) else viser_port
 
     @router.get("/viser", include_in_schema=False)
     async def viser_page_redirect() -> RedirectResponse:
@@ -44,7 +47,7 @@ def viser_router(viser_port: int, viser_host: str = "127.0.0.1") -> APIRouter:
         headers = {}
         if "accept-encoding" in request.headers:
             headers["Accept-Encoding"] = request.headers["accept-encoding"]
-        url = f"{base_http}/{path}"
+        url = f"http://{viser_host}:{port()}/{path}"
         try:
             async with httpx.AsyncClient(timeout=10.0) as client:
                 upstream = await client.send(
@@ -67,7 +70,7 @@ def viser_router(viser_port: int, viser_host: str = "127.0.0.1") -> APIRouter:
         protocols = [Subprotocol(p) for p in offered if p.startswith("viser-v")]
         try:
             upstream = await connect(
-                base_ws,
+                f"ws://{viser_host}:{port()}/",
                 subprotocols=protocols or None,
                 max_size=None,  # viser sends whole scenes and images in one message
                 compression=None,

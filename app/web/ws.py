@@ -46,7 +46,7 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 from starlette.websockets import WebSocketDisconnect
 
 from app.channels import LatestSlot, SlotReader
-from app.runtime import CommandRefused
+from app.runtime import CommandRefusedError
 from app.web.auth import offered_subprotocol, origin_allowed, token_matches, websocket_token
 from app.web.context import WebContext, json_safe
 from app.web.service import RobotService
@@ -317,7 +317,7 @@ async def handle_control(service: RobotService, driver: str, text: str) -> dict[
             await service.start()
         elif message.type == "stop":
             await service.stop()
-    except CommandRefused as exc:
+    except CommandRefusedError as exc:
         reply.update(type="error", detail=str(exc))
     reply["state"] = service.state.value
     return reply

@@ -10,7 +10,7 @@ a clean state (`robot` fixture: no e-stop, no teleop driver).
 from __future__ import annotations
 
 import asyncio
-import contextlib
+import os
 import socket
 import threading
 import time
@@ -20,15 +20,11 @@ from pathlib import Path
 from typing import Any, TypeVar
 
 import pytest
-import uvicorn
-from fastapi import APIRouter
 
 from app.config import load_config
 from app.devices import open_devices
 from app.runtime import Runtime
-from app.web import create_app
-from app.web.map_view import map_router
-from app.web.viser_proxy import viser_router
+from app.web.server import WebService
 from app.web.viser_view import ViserView
 
 ROOT = Path(__file__).resolve().parents[2]
@@ -91,42 +87,26 @@ def _serve(ready: threading.Event, holder: dict[str, Any], stop: threading.Event
         config = load_config(
             ROOT / "config.toml",
             runtime={"autostart": False, "log_level": "warning"},
+            web={"port": web_port},
             viser={"enabled": True, "port": viser_port},
         )
         with open_devices(config) as devices:
             runtime = Runtime(config, devices)
-            if not hasattr(runtime, "intrinsics"):
-                # The API's RobotService reads the lens model from the service; until
-                # Runtime carries it, hand it the devices' (None on the simulator).
-                runtime.intrinsics = devices.intrinsics  # type: ignore[attr-defined]
-            view = ViserView(runtime, port=viser_port)
-            view.start()
-            extra = APIRouter()
-            extra.include_router(viser_router(view.port))
-            extra.include_router(map_router(runtime))
-            app = create_app(runtime, token=TOKEN, static_dir=ROOT / "static", viser_router=extra)
-            server = uvicorn.Server(
-                uvicorn.Config(
-                    app, host="127.0.0.1", port=web_port, log_level="warning", lifespan="off"
-                )
-            )
+            # The daemon's own wiring (`floornav run` uses the same service).
+            web = WebService(runtime, token=TOKEN)
+            assert web.view is not None
             loop = asyncio.get_running_loop()
-            holder["server"] = LiveServer(f"http://127.0.0.1:{web_port}", runtime, view, loop)
-            run_task = asyncio.create_task(runtime.run(install_signals=False))
-            web_task = asyncio.create_task(server.serve())
-            view_task = asyncio.create_task(view.run())
+            holder["server"] = LiveServer(f"http://127.0.0.1:{web_port}", runtime, web.view, loop)
+            run_task = asyncio.create_task(runtime.run(install_signals=False, services=[web]))
+            while not web.started and not run_task.done():
+                await asyncio.sleep(0.05)
             ready.set()
             try:
                 while not stop.is_set() and not run_task.done():
                     await asyncio.sleep(0.1)
             finally:
-                server.should_exit = True
                 runtime.request_shutdown("tests finished")
-                view_task.cancel()
-                with contextlib.suppress(asyncio.CancelledError):
-                    await view_task
-                await asyncio.gather(run_task, web_task, return_exceptions=True)
-                view.stop()
+                await asyncio.gather(run_task, return_exceptions=True)
 
     try:
         asyncio.run(main())
@@ -138,7 +118,9 @@ def _serve(ready: threading.Event, holder: dict[str, Any], stop: threading.Event
 @pytest.fixture(scope="session")
 def live_server() -> Iterator[LiveServer]:
     if not CHROMIUM.exists():
-        pytest.skip("Debian's chromium is not installed (apt-get install chromium)")
+        if os.environ.get("FLOORNAV_REQUIRE_BROWSER"):
+            pytest.fail("FLOORNAV_REQUIRE_BROWSER is set but /usr/bin/chromium is missing")
+        pytest.skip("Debian's chromium is not installed (scripts/install-browser-deps)")
     ready, stop = threading.Event(), threading.Event()
     holder: dict[str, Any] = {}
     thread = threading.Thread(target=_serve, args=(ready, holder, stop), daemon=True, name="daemon")

@@ -20,7 +20,7 @@ from app.mapping.calibration import FloorCalibration, Intrinsics
 from app.mapping.frontiers import FrontierSearch
 from app.mapping.ground_map import GroundMapper
 from app.messages import DriveMsg, FloorMsg, FrameMsg, MapMsg, State
-from app.runtime import CommandRefused, Counters
+from app.runtime import CommandRefusedError, Counters
 from app.web.service import CalibrationFit, CalibrationSave
 
 from ..conftest import room_scene
@@ -69,7 +69,7 @@ def drive_msg(heading_rad: float | None = 0.3) -> DriveMsg:
 
 
 class FakeService:
-    """Records every verb in ``calls``; verbs named in ``refuse`` raise CommandRefused."""
+    """Records every verb in ``calls``; verbs named in ``refuse`` raise CommandRefusedError."""
 
     def __init__(self, config: FloornavConfig | None = None) -> None:
         self.config = config or FloornavConfig()
@@ -108,7 +108,7 @@ class FakeService:
 
     def _maybe_refuse(self, verb: str) -> None:
         if verb in self.refuse:
-            raise CommandRefused(self.refuse[verb])
+            raise CommandRefusedError(self.refuse[verb])
 
     def elapsed_s(self) -> float:
         return time.monotonic() - self.started_s
@@ -164,7 +164,7 @@ class FakeService:
         self._maybe_refuse("calibrate")
         frame = self.frames.peek()
         if frame is None:
-            raise CommandRefused("no recent camera frame to calibrate on")
+            raise CommandRefusedError("no recent camera frame to calibrate on")
         calibration = fit(frame.image)
         if save is not None:
             save(calibration)
