@@ -904,7 +904,7 @@ class Runtime:
 
     def elapsed_s(self) -> float:
         if self.started_s is None:
-            return 0.0
+            return 1e-9  # never started: rates come out as 0, not a division by zero
         end = self.ended_s if self.ended_s is not None else self.clock()
         return max(1e-9, end - self.started_s)
 
