@@ -60,9 +60,20 @@ async def main_async(args: argparse.Namespace) -> int:
         "FLOORNAV_TOKEN": "measure-streaming-token-000",
     }
     proc = subprocess.Popen(
-        [sys.executable, "-m", "app", "run", "--duration-s", str(args.duration_s),
-         "--report", str(report)],
-        cwd=ROOT, env=env, stdout=subprocess.DEVNULL, stderr=subprocess.DEVNULL,
+        [
+            sys.executable,
+            "-m",
+            "app",
+            "run",
+            "--duration-s",
+            str(args.duration_s),
+            "--report",
+            str(report),
+        ],
+        cwd=ROOT,
+        env=env,
+        stdout=subprocess.DEVNULL,
+        stderr=subprocess.DEVNULL,
     )
     url = f"ws://127.0.0.1:{port}/ws/video"
     deadline = time.monotonic() + 60
