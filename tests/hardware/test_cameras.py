@@ -70,7 +70,8 @@ def test_replay_video_paced_then_ended(video: Path) -> None:
 def test_replay_image_folder(tmp_path: Path) -> None:
     for k, image in enumerate(_images(4)):
         cv2.imwrite(str(tmp_path / f"{k:03d}.png"), image)
-    seen = _play(ReplayCamera(tmp_path, fps=100.0))
+    # 25 fps: slow enough that a loaded CI machine still sees every frame.
+    seen = _play(ReplayCamera(tmp_path, fps=25.0))
     assert seen == [10, 30, 50, 70]
 
 
