@@ -146,17 +146,19 @@ def cmd_uno_check(args: argparse.Namespace) -> int:
 
 
 def cmd_bench(args: argparse.Namespace) -> int:
+    from app.benchmarks import restored_affinity
     from app.benchmarks.grid import bench_grid_update, format_grid_bench
     from app.benchmarks.perception import format_bench, run_bench
     from app.benchmarks.sim import bench_render
 
     config = _load(args.config)
     perception = config.perception.model_copy(update={"method": args.method})
-    result = run_bench(perception, args.datasets, repeats=args.repeats)
-    grid = bench_grid_update(max(1, args.repeats))
-    result["grid_update"] = grid
-    render = bench_render(max(1, args.repeats // 2))
-    result["sim_render"] = render
+    with restored_affinity():
+        result = run_bench(perception, args.datasets, repeats=args.repeats)
+        grid = bench_grid_update(max(1, args.repeats))
+        result["grid_update"] = grid
+        render = bench_render(max(1, args.repeats // 2))
+        result["sim_render"] = render
     if args.json:
         print_json(result)
     else:

@@ -159,3 +159,15 @@ def test_sim_eval_scores_methods_against_ground_truth(capsys: pytest.CaptureFixt
     # Every method finds a good part of the simulated floor and calls little else floor.
     assert summary["methods"]["thesis"]["iou"] > 0.5
     assert min(s["floor_precision"] for s in summary["methods"].values()) > 0.9
+
+
+def test_bench_leaves_the_process_on_all_its_cpus() -> None:
+    import os
+
+    from app.benchmarks import pin_to_one_cpu, restored_affinity
+
+    before = os.sched_getaffinity(0)
+    with restored_affinity():
+        pin_to_one_cpu()
+        assert len(os.sched_getaffinity(0)) == 1
+    assert os.sched_getaffinity(0) == before

@@ -3,7 +3,9 @@ returns a JSON-ready dict."""
 
 from __future__ import annotations
 
+import contextlib
 import os
+from collections.abc import Iterator
 
 import cv2
 
@@ -17,3 +19,17 @@ def pin_to_one_cpu() -> str:
         os.sched_setaffinity(0, {cpu})
         return f"cpu {cpu}"
     return "unpinned"
+
+
+@contextlib.contextmanager
+def restored_affinity() -> Iterator[None]:
+    """Undo `pin_to_one_cpu` on exit, so a benchmark run inside a longer-lived process
+    (the CLI's tests, a notebook) does not leave it on one core."""
+    threads = cv2.getNumThreads()
+    affinity = os.sched_getaffinity(0) if hasattr(os, "sched_getaffinity") else None
+    try:
+        yield
+    finally:
+        cv2.setNumThreads(threads)
+        if affinity is not None:
+            os.sched_setaffinity(0, affinity)
