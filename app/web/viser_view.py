@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 from app.mapping.frames import GroundGrid, Pose2D
 from app.mapping.occupancy import FREE, OCCUPIED
 from app.perception.pipeline import trapezoid_from_config
-from app.runtime import path_to_xy
+from app.runtime import path_to_xy, percentiles_ms
 
 if TYPE_CHECKING:
     from app.mapping.calibration import FloorCalibration
@@ -123,17 +123,6 @@ def camera_floor_footprint(
         corners.append((seen[0], seen[-1]))  # nearest (bottom row) and farthest
     (left_near, left_far), (right_near, right_far) = corners
     return np.array([left_near, right_near, right_far, left_far])
-
-
-def percentiles(values_ms: deque[float]) -> dict[str, float | int | None]:
-    data = sorted(values_ms)
-    if not data:
-        return {"p50": None, "p95": None, "max": None, "n": 0}
-
-    def pick(q: float) -> float:
-        return round(data[min(len(data) - 1, round(q * (len(data) - 1)))], 3)
-
-    return {"p50": pick(0.5), "p95": pick(0.95), "max": round(data[-1], 3), "n": len(data)}
 
 
 @dataclass
@@ -437,4 +426,7 @@ class ViserView:
 
     def timing_summary(self) -> dict[str, dict[str, float | int | None]]:
         """p50/p95/max milliseconds of the map and pose updates (for reports and tests)."""
-        return {name: percentiles(values) for name, values in self.timings_ms.items()}
+        return {
+            name: percentiles_ms([v / 1000.0 for v in values])
+            for name, values in self.timings_ms.items()
+        }

@@ -20,23 +20,10 @@ from app.mapping.calibration import FloorCalibration, Intrinsics
 from app.mapping.frontiers import FrontierSearch
 from app.mapping.ground_map import GroundMapper
 from app.messages import DriveMsg, FloorMsg, FrameMsg, MapMsg, State
-from app.runtime import CommandRefusedError, Counters
+from app.runtime import CommandRefusedError, Counters, StageClock
 from app.web.service import CalibrationFit, CalibrationSave
 
 from ..conftest import room_scene
-
-
-class CountingStageClock:
-    """`app.runtime.StageClock` plus the per-stage totals the metrics need."""
-
-    def __init__(self, maxlen: int = 100_000) -> None:
-        self.maxlen = maxlen
-        self.samples: dict[str, deque[float]] = {}
-        self.totals: dict[str, int] = {}
-
-    def add(self, stage: str, seconds: float) -> None:
-        self.samples.setdefault(stage, deque(maxlen=self.maxlen)).append(seconds)
-        self.totals[stage] = self.totals.get(stage, 0) + 1
 
 
 @dataclass
@@ -82,7 +69,7 @@ class FakeService:
         self.decisions: LatestSlot[SteeringDecision] = LatestSlot("decisions")
         self.maps: LatestSlot[MapMsg] = LatestSlot("maps")
         self.counters = Counters()
-        self.stages = CountingStageClock()
+        self.stages = StageClock()
         self.latencies: deque[float] = deque(maxlen=100_000)
         self.latencies_total = 0
         self.mux = FakeMux()
