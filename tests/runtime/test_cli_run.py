@@ -49,7 +49,12 @@ def test_sigterm_stops_the_motors_and_writes_the_report(tmp_path: Path) -> None:
         "120",
         "--report",
         str(report),
-        env={"FLOORNAV_RUNTIME__LOG_JSON": "true"},
+        env={
+            "FLOORNAV_RUNTIME__LOG_JSON": "true",
+            "FLOORNAV_WEB__PORT": str(_free_port()),
+            "FLOORNAV_VISER__PORT": str(_free_port()),
+            "FLOORNAV_TOKEN": "sigterm-test-token-00000000",
+        },
     )
     assert proc.stderr is not None
     deadline = time.monotonic() + 60
@@ -101,3 +106,53 @@ def test_simulated_camera_with_a_real_uno_is_refused_naming_the_key() -> None:
     _, err = proc.communicate(timeout=60)
     assert proc.returncode == 2
     assert "camera.source" in err
+
+
+@pytest.mark.sim
+def test_systemd_gets_ready_and_watchdog_pings(tmp_path: Path) -> None:
+    """Under systemd (Type=notify, WatchdogSec): READY=1 once the API serves, then
+    WATCHDOG=1 at half the watchdog interval while the stages run."""
+    import socket as socketlib
+
+    address = tmp_path / "notify.sock"
+    sock = socketlib.socket(socketlib.AF_UNIX, socketlib.SOCK_DGRAM)
+    sock.bind(str(address))
+    sock.settimeout(60)
+    port = _free_port()
+    proc = floornav(
+        "run",
+        "--duration-s",
+        "30",
+        env={
+            "NOTIFY_SOCKET": str(address),
+            "WATCHDOG_USEC": "400000",  # pings every 0.2 s
+            "FLOORNAV_WEB__PORT": str(port),
+            "FLOORNAV_VISER__ENABLED": "false",
+            "FLOORNAV_TOKEN": "systemd-test-token-0000000",
+        },
+    )
+    try:
+        messages: list[str] = []
+        start = time.monotonic()
+        while time.monotonic() - start < 60:
+            messages.append(sock.recv(4096).decode())
+            if (
+                any("READY=1" in m for m in messages)
+                and sum("WATCHDOG=1" in m for m in messages) >= 5
+            ):
+                break
+        assert any("READY=1" in m for m in messages), messages
+        assert sum("WATCHDOG=1" in m for m in messages) >= 5
+    finally:
+        proc.send_signal(signal.SIGTERM)
+        proc.communicate(timeout=20)
+        sock.close()
+    assert proc.returncode == 0
+
+
+def _free_port() -> int:
+    import socket as socketlib
+
+    with socketlib.socket() as probe:
+        probe.bind(("127.0.0.1", 0))
+        return int(probe.getsockname()[1])
