@@ -233,3 +233,22 @@ async def test_serial_unplugged_mid_run_faults_and_reconnects() -> None:
         # The link never re-arms the motors by itself after a reconnect.
         await asyncio.sleep(0.3)
         assert sim.uno.pwm == (0, 0)
+
+
+async def test_start_stop_restart() -> None:
+    async with running() as (rt, _):
+        sim = rt.devices.sim
+        assert sim is not None and sim.uno is not None
+        for _ in range(2):
+            await rt.start()
+            assert rt.state is State.RUNNING
+            await wait_for(lambda: sim.uno.pwm != (0, 0), 5.0, "the motors to turn")
+            await rt.stop()
+            assert rt.state is State.IDLE
+            await wait_for(lambda: sim.uno.pwm == (0, 0), 0.5, "stop to zero the motors")
+        assert [t.new for t in rt.transitions][-4:] == [
+            State.RUNNING,
+            State.IDLE,
+            State.RUNNING,
+            State.IDLE,
+        ]
