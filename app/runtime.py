@@ -61,6 +61,9 @@ log = logging.getLogger("floornav.runtime")
 
 T = TypeVar("T")
 
+CAMERA_START_GRACE_S = 5.0
+"""How long a camera may take to deliver its first frame before it counts as a fault."""
+
 CAPTURE_POLL_S = 0.002
 """How often capture looks for a new frame (the cameras publish from their threads)."""
 
@@ -747,7 +750,14 @@ class Runtime:
             if link.state is not DeviceState.CONNECTED:
                 problems.append(f"Uno {link.state.value}: {link.status().detail}")
             camera_status = self.devices.camera.status()
-            if not self._camera_ok:
+            # A camera that has not delivered its first frame yet is starting, not
+            # failing (a webcam takes a second to open), unless that takes too long.
+            starting = (
+                self.counters.frames_captured == 0
+                and camera_status.state is not DeviceState.FAILED
+                and self.clock() - (self.started_s or 0.0) < CAMERA_START_GRACE_S
+            )
+            if not self._camera_ok and not starting:
                 problems.append(
                     f"camera {camera_status.state.value}: "
                     + (camera_status.detail or "no recent frame")
