@@ -682,7 +682,10 @@ class Runtime:
                 continue  # recalibrated meanwhile: this map is gone
             if search is not None:
                 self.frontier = search
-                self._track_goal(search, start)
+                if self._autonomous and not self.mux.estopped:
+                    self._track_goal(search, start)
+                else:
+                    self._goal_since = None  # patience counts only while exploring
             done = self.clock()
             self.stages.add("mapping", done - start)
             self.counters.frames_mapped += 1
