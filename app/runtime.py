@@ -23,6 +23,7 @@ from __future__ import annotations
 
 import asyncio
 import contextlib
+import itertools
 import logging
 import math
 import os
@@ -116,6 +117,11 @@ def percentiles_ms(values_s: Any) -> dict[str, float | None]:
     return {"p50": pick(0.5), "p95": pick(0.95), "max": round(data[-1] * 1000, 2), "n": len(data)}
 
 
+def newest(values: deque[float], n: int) -> list[float]:
+    """The last ``n`` values without copying the whole (100k-long) window."""
+    return list(itertools.islice(reversed(values), n))
+
+
 class StageClock:
     """Per-stage durations (seconds), newest last, bounded."""
 
@@ -135,7 +141,7 @@ class StageClock:
     def recent_ms(self, n: int = 30) -> dict[str, float]:
         out = {}
         for name, values in self.samples.items():
-            tail = list(values)[-n:]
+            tail = newest(values, n)
             if tail:
                 out[name] = round(statistics.median(tail) * 1000, 2)
         return out
@@ -928,7 +934,7 @@ class Runtime:
         link = self.link
         pose = self.odometry.pose
         frontier = self.frontier
-        recent = list(self.frame_ages)[-30:]
+        recent = newest(self.frame_ages, 30)
         return {
             "state": self.state.value,
             "autonomous": self._autonomous,
