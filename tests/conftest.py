@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import socket
 from pathlib import Path
 
 import numpy as np
@@ -50,3 +51,10 @@ def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item
     """Browser tests last: Playwright's sync API keeps an event loop running in the main
     thread once its session starts, and pytest-asyncio tests cannot run after that."""
     items.sort(key=lambda item: item.get_closest_marker("browser") is not None)
+
+
+def free_port() -> int:
+    """A TCP port on localhost that nothing listens on right now (for test servers)."""
+    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
+        sock.bind(("127.0.0.1", 0))
+        return int(sock.getsockname()[1])

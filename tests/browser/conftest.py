@@ -11,7 +11,6 @@ from __future__ import annotations
 
 import asyncio
 import os
-import socket
 import threading
 import time
 from collections.abc import Callable, Iterator
@@ -26,6 +25,8 @@ from app.devices import open_devices
 from app.runtime import Runtime
 from app.web.server import WebService
 from app.web.viser_view import ViserView
+
+from ..conftest import free_port
 
 ROOT = Path(__file__).resolve().parents[2]
 CHROMIUM = Path("/usr/bin/chromium")
@@ -47,12 +48,6 @@ CHROMIUM_FLAGS = [
 FIRST_FRAME_TIMEOUT_S = 240.0  # a cold numba cache compiles the pipeline first
 
 T = TypeVar("T")
-
-
-def free_port() -> int:
-    with socket.socket(socket.AF_INET, socket.SOCK_STREAM) as sock:
-        sock.bind(("127.0.0.1", 0))
-        return int(sock.getsockname()[1])
 
 
 @dataclass

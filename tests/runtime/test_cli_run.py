@@ -13,6 +13,8 @@ from pathlib import Path
 
 import pytest
 
+from ..conftest import free_port
+
 PROJECT = Path(__file__).resolve().parents[2]
 
 
@@ -51,8 +53,8 @@ def test_sigterm_stops_the_motors_and_writes_the_report(tmp_path: Path) -> None:
         str(report),
         env={
             "FLOORNAV_RUNTIME__LOG_JSON": "true",
-            "FLOORNAV_WEB__PORT": str(_free_port()),
-            "FLOORNAV_VISER__PORT": str(_free_port()),
+            "FLOORNAV_WEB__PORT": str(free_port()),
+            "FLOORNAV_VISER__PORT": str(free_port()),
             "FLOORNAV_TOKEN": "sigterm-test-token-00000000",
         },
     )
@@ -118,7 +120,7 @@ def test_systemd_gets_ready_and_watchdog_pings(tmp_path: Path) -> None:
     sock = socketlib.socket(socketlib.AF_UNIX, socketlib.SOCK_DGRAM)
     sock.bind(str(address))
     sock.settimeout(60)
-    port = _free_port()
+    port = free_port()
     proc = floornav(
         "run",
         "--duration-s",
@@ -148,11 +150,3 @@ def test_systemd_gets_ready_and_watchdog_pings(tmp_path: Path) -> None:
         proc.communicate(timeout=20)
         sock.close()
     assert proc.returncode == 0
-
-
-def _free_port() -> int:
-    import socket as socketlib
-
-    with socketlib.socket() as probe:
-        probe.bind(("127.0.0.1", 0))
-        return int(probe.getsockname()[1])
