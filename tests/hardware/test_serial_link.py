@@ -249,7 +249,9 @@ async def test_garbage_and_bad_frames_from_the_device_are_counted_and_ignored(
     assert stats.garbage_bytes >= 13
     assert stats.crc_errors >= 2  # the corrupt frame, the truncated one (swallowed a frame)
     assert stats.oversize_frames == 1
-    assert stats.stale_acks == 1
+    # The injected stale ACK, plus the late ACK of a command that timed out (unless the
+    # truncated frame swallowed that ACK outright).
+    assert 1 <= stats.stale_acks <= 1 + timed_out
     assert stats.malformed_frames == 1
     assert stats.timeouts <= 1  # the truncated frame may have eaten one ACK
     assert link.state is DeviceState.CONNECTED
@@ -320,7 +322,12 @@ async def test_replug_reconnects_fast_and_never_rearms_motion(
     assert uno.pwm == (0, 0)
     assert link.commanded == (0, 0)
     assert uno.count(MsgType.DRIVE) == drives_before  # no DRIVE since the replug
+    # Heartbeat PINGs keep the link alive (polled: on a loaded machine they may lag).
+    deadline = time.monotonic() + 1.0
+    while uno.count(MsgType.PING) < 2 and time.monotonic() < deadline:
+        await asyncio.sleep(0.02)
     assert uno.count(MsgType.PING) >= 2
+    assert uno.count(MsgType.DRIVE) == drives_before
     await link.drive(40, 40)  # a new command, made after the reconnect
     await asyncio.sleep(0.35)
     assert uno.pwm == (40, 40)
