@@ -32,7 +32,6 @@ import statistics
 import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Coroutine, Sequence
-from concurrent.futures import ThreadPoolExecutor
 from dataclasses import dataclass
 from typing import Any, Protocol, TypeVar
 
@@ -57,12 +56,17 @@ from app.messages import DriveMsg, FloorMsg, FrameMsg, MapMsg, State, Transition
 from app.perception.image_checks import ImageError
 from app.perception.pipeline import FloorResult, FloorSegmenter
 from app.perception.safe_zone import SafeZoneError
+from app.workers import StageWorker
 
 log = logging.getLogger("floornav.runtime")
 
 T = TypeVar("T")
 
 CAMERA_START_GRACE_S = 5.0
+WORKER_CLOSE_TIMEOUT_S = 5.0
+"""How long shutdown waits for a perception or mapping job still running."""
+WORKER_STUCK_S = 2.0
+"""A perception or mapping job running this long is logged with its stack (once)."""
 """How long a camera may take to deliver its first frame before it counts as a fault."""
 
 CAPTURE_POLL_S = 0.002
@@ -281,8 +285,9 @@ class Runtime:
         self._wake_drive = asyncio.Event()
         self._shutdown = asyncio.Event()
         self._shutdown_reason = ""
-        self._perception_pool = ThreadPoolExecutor(1, thread_name_prefix="perception")
-        self._mapping_pool = ThreadPoolExecutor(1, thread_name_prefix="mapping")
+        self._perception_worker = StageWorker("perception")
+        self._mapping_worker = StageWorker("mapping")
+        self._stuck_reported: set[str] = set()
         self._frontier_due_s = 0.0
         self._last_latency_origin = -1.0
         self._last_pwm: tuple[int, int] | None = None
@@ -388,8 +393,7 @@ class Runtime:
             calibration = await asyncio.to_thread(fit, frame.image)
             if save is not None:
                 await asyncio.to_thread(save, calibration)
-            mapper = await asyncio.get_running_loop().run_in_executor(
-                self._mapping_pool,
+            mapper = await self._mapping_worker.run(
                 GroundMapper,
                 calibration,
                 self.config.mapping,
@@ -545,8 +549,19 @@ class Runtime:
                     extra={"event": "motors_zero_timeout"},
                 )
         self.devices.camera.close()
-        self._perception_pool.shutdown(wait=True, cancel_futures=True)
-        self._mapping_pool.shutdown(wait=True, cancel_futures=True)
+        for worker in (self._perception_worker, self._mapping_worker):
+            worker.shutdown()
+        for worker in (self._perception_worker, self._mapping_worker):
+            # Bounded, and without blocking the loop: a job stuck in native code must
+            # not keep the daemon from exiting (its thread is a daemon thread).
+            if not await worker.wait_closed(WORKER_CLOSE_TIMEOUT_S):
+                log.error(
+                    "the %s thread is still busy after %.0f s; leaving it behind. It is at:\n%s",
+                    worker.name,
+                    WORKER_CLOSE_TIMEOUT_S,
+                    worker.stack(),
+                    extra={"event": "worker_stuck", "stage": worker.name},
+                )
 
     async def _autostart(self) -> None:
         deadline = self.clock() + self.config.serial.handshake_timeout_s + 10.0
@@ -569,9 +584,6 @@ class Runtime:
         )
 
     # -- stages ---------------------------------------------------------------------------
-
-    async def _run_in(self, pool: ThreadPoolExecutor, fn: Callable[..., T], *args: Any) -> T:
-        return await asyncio.get_running_loop().run_in_executor(pool, fn, *args)
 
     async def _capture_stage(self) -> None:
         camera = self.devices.camera
@@ -599,7 +611,7 @@ class Runtime:
             start = self.clock()
             self.frame_ages.append(start - frame.capture_s)
             try:
-                result = await self._run_in(self._perception_pool, segmenter.segment, frame.image)
+                result = await self._perception_worker.run(segmenter.segment, frame.image)
             except (ImageError, SafeZoneError) as exc:
                 self.counters.bad_frames += 1
                 log.warning("frame %d rejected: %s", frame.seq, exc, extra={"event": "bad_frame"})
@@ -675,8 +687,7 @@ class Runtime:
             if frontier_due:
                 self._frontier_due_s = start + self.config.steering.frontier_period_s
             pose = self.odometry.pose_at(floor.capture_s)
-            msg, search = await self._run_in(
-                self._mapping_pool,
+            msg, search = await self._mapping_worker.run(
                 self._map_step,
                 mapper,
                 floor,
@@ -791,7 +802,24 @@ class Runtime:
             was_connected = connected
             self._fault_reason = reason
             self._update_state(reason or "devices healthy")
+            self._report_stuck_workers()
             await asyncio.sleep(period)
+
+    def _report_stuck_workers(self) -> None:
+        """Log where a perception or mapping job has been stuck (once per job). The
+        stale-perception layer has already stopped the motors by then."""
+        for worker in (self._perception_worker, self._mapping_worker):
+            if worker.busy_s() < WORKER_STUCK_S:
+                self._stuck_reported.discard(worker.name)
+            elif worker.name not in self._stuck_reported:
+                self._stuck_reported.add(worker.name)
+                log.error(
+                    "the %s job has run for %.1f s; it is at:\n%s",
+                    worker.name,
+                    worker.busy_s(),
+                    worker.stack(),
+                    extra={"event": "worker_stuck", "stage": worker.name},
+                )
 
     async def _drive_stage(self) -> None:
         link = self.link

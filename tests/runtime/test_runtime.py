@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import logging
 import threading
 import time
 
@@ -15,7 +16,7 @@ from app.hardware.interfaces import CameraFrame, DeviceState, DeviceStatus
 from app.hardware.protocol import MsgType
 from app.messages import State
 from app.perception.pipeline import FloorResult, FloorSegmenter
-from app.runtime import CommandRefusedError
+from app.runtime import WORKER_CLOSE_TIMEOUT_S, WORKER_STUCK_S, CommandRefusedError
 
 from .conftest import running, sim_config, wait_for
 
@@ -71,17 +72,24 @@ async def test_teleop_overrides_then_times_out_to_an_explicit_zero() -> None:
     async with running() as (rt, _):
         sim = rt.devices.sim
         assert sim is not None and sim.uno is not None
+        commanded = time.monotonic()
         rt.teleop("alice", 0.2, 0.0)
         assert rt.state is State.TELEOP
         await wait_for(lambda: sim.uno.pwm[0] > 0 and sim.uno.pwm[1] > 0, 1.0, "teleop forward")
         with pytest.raises(CommandRefusedError, match="alice"):
             rt.teleop("bob", 0.0, 1.0)
-        sent = time.monotonic()
-        await wait_for(lambda: sim.uno.pwm == (0, 0), 1.5, "the teleop timeout's zero")
-        # 0.5 s teleop timeout, then the next control tick sends the zero.
-        assert 0.4 < time.monotonic() - sent < 0.9
+
+        def timed_out() -> bool:
+            drive = rt.drives.peek()
+            return drive is not None and drive.source == "timeout"
+
+        await wait_for(timed_out, 1.5, "the teleop timeout's zero")
         drive = rt.drives.peek()
-        assert drive is not None and drive.source == "timeout"
+        assert drive is not None and (drive.left_pwm, drive.right_pwm) == (0, 0)
+        # 0.5 s teleop timeout, then the next control tick sends the zero (the Uno's
+        # own deadman may zero the motors first on a loaded machine: not what we test).
+        assert 0.4 < drive.sent_s - commanded < 0.9
+        await wait_for(lambda: sim.uno.pwm == (0, 0), 0.5, "the Uno to apply the zero")
 
 
 class StallingSegmenter:
@@ -118,6 +126,50 @@ async def test_stale_perception_stops_the_robot() -> None:
         assert time.monotonic() - stalled < 0.8
         assert rt.counters.watchdog_stops >= 1
         made[0].stall.clear()
+
+
+class HangingSegmenter(FloorSegmenter):
+    """Segments normally until ``hang`` is set, then blocks in its job until ``release``
+    (like a kernel stuck in native code: the thread cannot be interrupted)."""
+
+    hang = threading.Event()
+    release = threading.Event()
+
+    def segment(self, image: np.ndarray) -> FloorResult:
+        if self.hang.is_set():
+            self.release.wait(60.0)
+        return super().segment(image)
+
+
+async def test_a_hung_perception_job_stops_the_motors_and_does_not_block_shutdown(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    HangingSegmenter.hang.clear()
+    HangingSegmenter.release.clear()
+    caplog.set_level(logging.WARNING, logger="app.runtime")
+    try:
+        async with running(segmenter_factory=HangingSegmenter) as (rt, task):
+            sim = rt.devices.sim
+            assert sim is not None and sim.uno is not None
+            uno = sim.uno
+            await rt.start()
+            await wait_for(lambda: uno.pwm != (0, 0), 5.0, "the motors to turn")
+            HangingSegmenter.hang.set()
+            await wait_for(lambda: uno.pwm == (0, 0), 1.5, "the stale-perception stop")
+            await wait_for(
+                lambda: "worker_stuck" in [getattr(r, "event", "") for r in caplog.records],
+                WORKER_STUCK_S + 2.0,
+                "the stuck job to be logged",
+            )
+            assert "segment" in caplog.text, "the log says where the job is stuck"
+            closing = time.monotonic()
+        assert task.done() and task.exception() is None
+        assert time.monotonic() - closing < WORKER_CLOSE_TIMEOUT_S + 4.0
+        assert uno.pwm == (0, 0)
+        assert uno.count(MsgType.STOP) >= 1
+    finally:
+        HangingSegmenter.release.set()
+        HangingSegmenter.hang.clear()
 
 
 class CrashingSegmenter(FloorSegmenter):
