@@ -29,9 +29,12 @@ def notify(state: str) -> bool:
         return False
     try:
         with socket.socket(socket.AF_UNIX, socket.SOCK_DGRAM | socket.SOCK_CLOEXEC) as sock:
+            # Never block the event loop: a datagram socket whose reader stopped reading
+            # blocks the sender once ~10 datagrams are queued. Then the message is lost.
+            sock.setblocking(False)
             sock.connect(_socket_address(target))
-            sock.sendall(state.encode())
-    except OSError:
+            sock.send(state.encode())
+    except OSError:  # BlockingIOError included
         return False
     return True
 

@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import os
 import socket
 from pathlib import Path
 
@@ -45,6 +46,17 @@ def room_scene(
 @pytest.fixture
 def room() -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
     return room_scene()
+
+
+def pytest_configure(config: pytest.Config) -> None:
+    """Tests do not depend on the environment they run in: a CI runner under systemd may
+    set $NOTIFY_SOCKET / $WATCHDOG_USEC (the daemon would ping it), and any
+    FLOORNAV_<SECTION>__<KEY> would change every configuration the tests build."""
+    for name in list(os.environ):
+        if name in ("NOTIFY_SOCKET", "WATCHDOG_USEC", "WATCHDOG_PID") or (
+            name.startswith("FLOORNAV_") and "__" in name
+        ):
+            del os.environ[name]
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:

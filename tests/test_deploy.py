@@ -11,6 +11,7 @@ import shutil
 import socket
 import subprocess
 import tempfile
+import time
 from collections.abc import Iterator
 from pathlib import Path
 
@@ -187,6 +188,18 @@ def test_notify_sends_one_datagram_per_call(notify_socket: socket.socket) -> Non
     assert notify_socket.recv(4096) == b"READY=1"
     assert systemd.notify("WATCHDOG=1\nSTATUS=exploring")
     assert notify_socket.recv(4096) == b"WATCHDOG=1\nSTATUS=exploring"
+
+
+def test_notify_never_blocks_when_nobody_reads(notify_socket: socket.socket) -> None:
+    """A notify socket whose reader stopped (a wedged manager, a runner that set
+    $NOTIFY_SOCKET and never reads) fills after ~10 datagrams; a blocking send would then
+    hang the daemon's event loop. Later messages are dropped instead."""
+    started = time.monotonic()
+    sent = [systemd.notify("WATCHDOG=1") for _ in range(50)]
+    assert time.monotonic() - started < 1.0
+    assert sent[0] is True
+    assert sent[-1] is False, "the queue filled: the rest were dropped, not waited for"
+    assert notify_socket.recv(4096) == b"WATCHDOG=1"
 
 
 def test_notify_reaches_an_abstract_socket(monkeypatch: pytest.MonkeyPatch) -> None:
