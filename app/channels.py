@@ -62,3 +62,20 @@ class SlotReader(Generic[T]):
         self.version = version
         self.taken += 1
         return value
+
+
+async def wait_event(event: asyncio.Event, timeout_s: float | None) -> bool:
+    """Wait until ``event`` is set or ``timeout_s`` passed; True if it is set.
+
+    Use this, not ``asyncio.wait_for(event.wait(), ...)``: on Python 3.11, wait_for
+    returns normally when its task is cancelled in the same loop iteration as the event
+    fires, losing the cancellation. A stage looping on it then survives its task
+    group's cancel and the group never finishes (the daemon hung at shutdown that way).
+    ``asyncio.timeout`` keeps the cancellation.
+    """
+    try:
+        async with asyncio.timeout(timeout_s):
+            await event.wait()
+    except TimeoutError:
+        return event.is_set()
+    return True

@@ -39,7 +39,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app import systemd
-from app.channels import LatestSlot, SlotReader
+from app.channels import LatestSlot, SlotReader, wait_event
 from app.config import FloornavConfig, PerceptionConfig
 from app.control.kinematics import RateLimiter, WheelOdometry, twist_to_pwm
 from app.control.mux import CommandMux, MuxOutput, TeleopRefusedError, Twist
@@ -65,6 +65,8 @@ T = TypeVar("T")
 CAMERA_START_GRACE_S = 5.0
 WORKER_CLOSE_TIMEOUT_S = 5.0
 """How long shutdown waits for a perception or mapping job still running."""
+STRAGGLER_RECANCEL_S = 2.0
+"""After the run ends, tasks still running this long are cancelled again (and named)."""
 WORKER_STUCK_S = 2.0
 """A perception or mapping job running this long is logged with its stack (once)."""
 """How long a camera may take to deliver its first frame before it counts as a fault."""
@@ -297,6 +299,8 @@ class Runtime:
         self._perception_config_changed = False
         self._services: list[Service] = []
         self._service_tasks: list[asyncio.Task[None]] = []
+        self._group_tasks: list[asyncio.Task[None]] = []
+        self._recanceller: asyncio.Task[None] | None = None
         if self.calibration is not None:
             self.mapper = GroundMapper(self.calibration, config.mapping, config.camera)
 
@@ -450,6 +454,7 @@ class Runtime:
         is re-raised after the motors are stopped). ``services`` run beside the stages
         (a crash of one ends the run like a stage's) and are asked to stop first."""
         self._services = list(services)
+        self._service_tasks, self._group_tasks, self._recanceller = [], [], None
         self._loop = asyncio.get_running_loop()
         self.link = self.devices.make_link()
         self.rss_start_mb = rss_mb()
@@ -470,18 +475,27 @@ class Runtime:
                         "health": self._health_stage(),
                     }
                     for name, coro in stages.items():
-                        group.create_task(self._guard(name, coro), name=name)
+                        self._group_tasks.append(
+                            group.create_task(self._guard(name, coro), name=name)
+                        )
                     for service in self._services:
-                        self._service_tasks.append(
+                        task = group.create_task(
+                            self._guard(service.name, service.serve()), name=service.name
+                        )
+                        self._service_tasks.append(task)
+                        self._group_tasks.append(task)
+                    if self.config.runtime.autostart:
+                        self._group_tasks.append(
                             group.create_task(
-                                self._guard(service.name, service.serve()), name=service.name
+                                self._guard("autostart", self._autostart()), name="autostart"
                             )
                         )
-                    if self.config.runtime.autostart:
-                        group.create_task(self._guard("autostart", self._autostart()))
                     group.create_task(self._until_shutdown(duration_s), name="shutdown")
             except* _ShutdownRequested:
                 pass
+            finally:
+                if self._recanceller is not None:
+                    self._recanceller.cancel()
         except BaseException as exc:
             if self.crash is None and not isinstance(exc, asyncio.CancelledError):
                 self.crash = f"{type(exc).__name__}: {exc}"
@@ -505,9 +519,7 @@ class Runtime:
         return installed
 
     async def _until_shutdown(self, duration_s: float | None) -> None:
-        try:
-            await asyncio.wait_for(self._shutdown.wait(), timeout=duration_s)
-        except TimeoutError:
+        if not await wait_event(self._shutdown, duration_s):
             self._shutdown_reason = f"duration {duration_s:g} s reached"
             log.info("run duration reached", extra={"event": "shutdown", "duration_s": duration_s})
         # Let services close their sockets and connections before the group cancels.
@@ -515,7 +527,32 @@ class Runtime:
             service.request_stop()
         if self._service_tasks:
             await asyncio.wait(self._service_tasks, timeout=3.0)
+        self._start_recanceller()
         raise _ShutdownRequested(self._shutdown_reason)
+
+    def _start_recanceller(self) -> None:
+        if self._recanceller is None:
+            self._recanceller = asyncio.create_task(self._recancel_stragglers(), name="recancel")
+
+    async def _recancel_stragglers(self) -> None:
+        """The task group cancels every task once when the run ends, and waits for all.
+        A task that loses that cancellation (a library swallowing it, or wait_for on
+        3.11: see `wait_event`) would keep the daemon from ever stopping, and a second
+        cancel of the run does not reach the group's tasks. So cancel them again."""
+        while True:
+            await asyncio.sleep(STRAGGLER_RECANCEL_S)
+            stragglers = [task for task in self._group_tasks if not task.done()]
+            if not stragglers:
+                return
+            log.error(
+                "still running %.0f s after the run ended (lost a cancellation): %s; "
+                "cancelling again",
+                STRAGGLER_RECANCEL_S,
+                ", ".join(task.get_name() for task in stragglers),
+                extra={"event": "straggler"},
+            )
+            for task in stragglers:
+                task.cancel()
 
     async def _guard(self, name: str, coro: Awaitable[None]) -> None:
         try:
@@ -530,6 +567,7 @@ class Runtime:
             # Zero the motors before the task group unwinds the other stages.
             self._autonomous = False
             self.mux.estop(f"stage {name} crashed")
+            self._start_recanceller()
             raise
 
     async def _stop_everything(self) -> None:
@@ -826,8 +864,7 @@ class Runtime:
         assert link is not None
         period = self.config.drive.control_period_ms / 1000.0
         while True:
-            with contextlib.suppress(TimeoutError):
-                await asyncio.wait_for(self._wake_drive.wait(), timeout=period)
+            await wait_event(self._wake_drive, period)
             self._wake_drive.clear()
             start = self.clock()
             out = self._gate(self.mux.output(start), start)

@@ -11,12 +11,18 @@ import numpy as np
 import pytest
 
 from app.config import PerceptionConfig
-from app.devices import Devices
+from app.devices import Devices, open_devices
 from app.hardware.interfaces import CameraFrame, DeviceState, DeviceStatus
 from app.hardware.protocol import MsgType
 from app.messages import State
 from app.perception.pipeline import FloorResult, FloorSegmenter
-from app.runtime import WORKER_CLOSE_TIMEOUT_S, WORKER_STUCK_S, CommandRefusedError
+from app.runtime import (
+    STRAGGLER_RECANCEL_S,
+    WORKER_CLOSE_TIMEOUT_S,
+    WORKER_STUCK_S,
+    CommandRefusedError,
+    Runtime,
+)
 
 from .conftest import running, sim_config, wait_for
 
@@ -146,7 +152,7 @@ async def test_a_hung_perception_job_stops_the_motors_and_does_not_block_shutdow
 ) -> None:
     HangingSegmenter.hang.clear()
     HangingSegmenter.release.clear()
-    caplog.set_level(logging.WARNING, logger="app.runtime")
+    caplog.set_level(logging.WARNING, logger="floornav.runtime")
     try:
         async with running(segmenter_factory=HangingSegmenter) as (rt, task):
             sim = rt.devices.sim
@@ -304,3 +310,46 @@ async def test_start_stop_restart() -> None:
             State.RUNNING,
             State.IDLE,
         ]
+
+
+class CancellationSwallowingService:
+    """A service with a library bug: it loses the first cancellation and carries on."""
+
+    name = "stubborn"
+
+    def __init__(self) -> None:
+        self.cancels = 0
+
+    async def serve(self) -> None:
+        while True:
+            try:
+                await asyncio.sleep(3600)
+            except asyncio.CancelledError:
+                self.cancels += 1
+                if self.cancels > 1:
+                    raise
+
+    def request_stop(self) -> None:
+        pass  # ignores it too
+
+
+async def test_a_task_that_loses_its_cancellation_does_not_hang_shutdown(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    caplog.set_level(logging.WARNING, logger="floornav.runtime")
+    service = CancellationSwallowingService()
+    config = sim_config()
+    with open_devices(config) as devices:
+        runtime = Runtime(config, devices)
+        started = time.monotonic()
+        await asyncio.wait_for(
+            runtime.run(duration_s=1.0, install_signals=False, services=[service]), 20.0
+        )
+        elapsed = time.monotonic() - started
+        assert devices.sim is not None and devices.sim.uno is not None
+        assert devices.sim.uno.pwm == (0, 0)
+        assert devices.sim.uno.count(MsgType.STOP) >= 1
+    # 1 s run + 3 s for services to stop + one re-cancel after 2 s.
+    assert elapsed < 1.0 + 3.0 + STRAGGLER_RECANCEL_S + 3.0
+    assert service.cancels == 2
+    assert "stubborn" in caplog.text and "cancelling again" in caplog.text
