@@ -678,7 +678,7 @@ class Runtime:
         frontier_due: bool,
     ) -> tuple[MapMsg, FrontierSearch | None]:
         """In the mapping thread: fuse the frame, maybe search frontiers, cut the window."""
-        update = mapper.update(floor.floor_mask, pose, floor.capture_s)
+        update = mapper.update(floor.floor_mask, pose, floor.capture_s, floor.image)
         search = (
             mapper.frontiers(now_pose, given_up_xy=self.given_up_goals) if frontier_due else None
         )

@@ -4,9 +4,12 @@ calibration and supplies poses and times."""
 
 from __future__ import annotations
 
+import math
+from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -16,6 +19,16 @@ from app.mapping.frames import FLOOR, GroundGrid, Pose2D
 from app.mapping.frontiers import FrontierParams, FrontierSearch, find_frontiers, footprint_mask
 from app.mapping.ipm import BirdseyeMap, birdseye_floor_patch, build_birdseye_map
 from app.mapping.occupancy import FREE, UNKNOWN, OccupancyGrid, OccupancyParams, UpdateSummary
+from app.perception.planar import PlanarParams, confirm_floor, view_homography
+
+PARALLAX_PERIOD_S = 0.2
+"""The parallax test runs at most this often (~8 ms a frame)..."""
+PARALLAX_CARRY_S = 0.5
+"""...and its confirmed floor is carried to the frames between for at most this long."""
+_STORED_VIEWS = 24
+"""Earlier frames kept for the parallax test (grey, ~0.3 MB each)..."""
+_VIEW_STEP_M = 0.02
+"""...one per this much camera travel."""
 
 
 def birdseye_grid(mapping: MappingConfig) -> GroundGrid:
@@ -98,11 +111,30 @@ class GroundMapper:
         )
         self.frontier_params = frontier_params(mapping)
         self.blind_zone = blind_zone_cells(self.birdseye, mapping.robot_radius_m)
+        # Parallax needs the floor homography to hold on the frames themselves.
+        self.parallax = (
+            PlanarParams() if mapping.parallax_floor and calibration.intrinsics is None else None
+        )
+        self._views: deque[tuple[NDArray[np.uint8], tuple[float, float, float]]] = deque(
+            maxlen=_STORED_VIEWS
+        )
+        self.parallax_frames = 0
+        """Frames whose floor was tested by parallax (for the report)."""
+        self._parallax_due_s = -math.inf
+        self._confirmed: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
 
     def update(
-        self, floor_mask: NDArray[np.bool_], T_world_robot: Pose2D, now_s: float
+        self,
+        floor_mask: NDArray[np.bool_],
+        T_world_robot: Pose2D,
+        now_s: float,
+        image: NDArray[np.uint8] | None = None,
     ) -> MapUpdate:
-        """Fuse one frame's floor mask seen at ``T_world_robot``."""
+        """Fuse one frame's floor mask seen at ``T_world_robot``. With the frame's
+        ``image`` (BGR or grey), the floor is first extended where motion parallax
+        against an earlier frame confirms it (`app.perception.planar`)."""
+        if image is not None and self.parallax is not None:
+            floor_mask = self._confirm_by_parallax(floor_mask, image, T_world_robot, now_s)
         patch = birdseye_floor_patch(floor_mask, self.birdseye)
         # The thesis's safe-zone assumption: the strip just ahead of the robot, below the
         # camera's view, is free floor.
@@ -111,6 +143,61 @@ class GroundMapper:
             patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot, now_s
         )
         return MapUpdate(patch, summary)
+
+    def _confirm_by_parallax(
+        self, floor_mask: NDArray[np.bool_], image: NDArray[np.uint8], pose: Pose2D, now_s: float
+    ) -> NDArray[np.bool_]:
+        assert self.parallax is not None
+        gray = np.asarray(
+            cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image, np.uint8
+        )
+        here = (pose.x_m, pose.y_m, pose.theta_rad)
+        cam = _camera_xy(here, self.camera_xy_robot)
+        target = self.mapping.parallax_baseline_m
+        best: tuple[NDArray[np.uint8], tuple[float, float, float]] | None = None
+        best_error = math.inf
+        for view in self._views:
+            baseline = float(np.hypot(*(cam - _camera_xy(view[1], self.camera_xy_robot))))
+            turn = abs(math.remainder(here[2] - view[1][2], math.tau))
+            error = abs(baseline - target)
+            if (
+                0.5 * target <= baseline <= 1.5 * target
+                and turn <= self.mapping.parallax_max_turn_rad
+                and error < best_error
+            ):
+                best, best_error = view, error
+        newest = self._views[-1][1] if self._views else None
+        if (
+            newest is None
+            or float(np.hypot(*(cam - _camera_xy(newest, self.camera_xy_robot)))) >= _VIEW_STEP_M
+        ):
+            self._views.append((gray, here))
+        if best is not None and gray.shape == best[0].shape and now_s >= self._parallax_due_s:
+            self._parallax_due_s = now_s + PARALLAX_PERIOD_S
+            self.parallax_frames += 1
+            extended = confirm_floor(
+                floor_mask,
+                gray,
+                best[0],
+                self.calibration.H_ground_from_image,
+                best[1],
+                here,
+                self.camera_xy_robot,
+                self.parallax,
+            )
+            self._confirmed = (extended & ~floor_mask, here, now_s)
+            return extended
+        if self._confirmed is not None and now_s - self._confirmed[2] <= PARALLAX_CARRY_S:
+            # Between tests, the last confirmed floor carries over exactly: it lies on the
+            # floor plane, which the homography between the two poses maps.
+            added, then, _ = self._confirmed
+            H = view_homography(self.calibration.H_ground_from_image, then, here)
+            h, w = floor_mask.shape
+            carried = cv2.warpPerspective(
+                added.astype(np.uint8), H, (w, h), flags=cv2.INTER_NEAREST, borderValue=0
+            )
+            return np.asarray(floor_mask | (carried > 0), dtype=np.bool_)
+        return floor_mask
 
     def frontiers(
         self,
@@ -130,3 +217,12 @@ class GroundMapper:
         return find_frontiers(
             cells, world, (T_world_robot.x_m, T_world_robot.y_m), self.frontier_params
         )
+
+
+def _camera_xy(
+    pose: tuple[float, float, float], camera_xy: tuple[float, float]
+) -> NDArray[np.float64]:
+    """Where the camera is in the world for a robot pose (x_m, y_m, theta_rad)."""
+    c, s = math.cos(pose[2]), math.sin(pose[2])
+    cx, cy = camera_xy
+    return np.array([pose[0] + c * cx - s * cy, pose[1] + s * cx + c * cy])

@@ -3,6 +3,8 @@ synthetic calibrated camera."""
 
 from __future__ import annotations
 
+from pathlib import Path
+
 import numpy as np
 
 from app.config import CameraConfig, MappingConfig
@@ -68,3 +70,53 @@ def test_frontier_goal_lies_at_the_edge_of_what_was_seen() -> None:
     assert search.clusters
     x, _ = search.goal.xy
     assert 0.0 < x <= 2.6  # at the far edge or the sides of the seen wedge
+
+
+def sim_mapper(**mapping: object) -> tuple[GroundMapper, object, object]:
+    from app.config import load_config
+    from app.perception.pipeline import FloorSegmenter
+    from app.sim.setup import camera_model, renderer_from_config, sim_floor_calibration
+
+    config = load_config(Path(__file__).resolve().parents[2] / "config.toml", mapping=mapping)
+    mapper = GroundMapper(
+        sim_floor_calibration(camera_model(config)), config.mapping, config.camera
+    )
+    return mapper, renderer_from_config(config), FloorSegmenter(config.perception)
+
+
+def test_parallax_confirms_floor_past_the_doorway_and_carries_it_between_tests() -> None:
+    from app.mapping.ground_map import PARALLAX_CARRY_S, PARALLAX_PERIOD_S
+
+    mapper, renderer, segmenter = sim_mapper()
+    plain, _, _ = sim_mapper(parallax_floor=False)
+    assert mapper.parallax is not None and plain.parallax is None
+    floor_cells = []
+    for k, x in enumerate((3.83, 3.95, 3.96)):  # 0.12 m, then 0.01 m further on
+        pose = Pose2D(x, 3.05, 0.0)
+        frame = renderer.render(pose)  # type: ignore[attr-defined]
+        mask = segmenter.segment(frame.image).floor_mask  # type: ignore[attr-defined]
+        now = 0.05 * k  # the third frame comes before the next test is due
+        update = mapper.update(mask, pose, now, frame.image)
+        baseline = plain.update(mask, pose, now, frame.image)
+        floor_cells.append(((update.patch == FLOOR).sum(), (baseline.patch == FLOOR).sum()))
+    assert PARALLAX_PERIOD_S > 0.05 and PARALLAX_CARRY_S > 0.1
+    assert mapper.parallax_frames == 1  # the first frame had no reference
+    assert floor_cells[0][0] == floor_cells[0][1]
+    # Confirmed: the tiles past the threshold add floor; carried to the next frame.
+    assert floor_cells[1][0] > floor_cells[1][1] + 500
+    assert floor_cells[2][0] > floor_cells[2][1] + 500
+
+
+def test_parallax_is_off_for_frames_with_lens_distortion() -> None:
+    from dataclasses import replace
+
+    from app.mapping.calibration import Intrinsics
+
+    mapper, _, _ = sim_mapper()
+    intrinsics = Intrinsics(
+        np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]), np.zeros(5), (640, 480), 0.1
+    )
+    distorted = GroundMapper(
+        replace(mapper.calibration, intrinsics=intrinsics), mapper.mapping, CameraConfig()
+    )
+    assert distorted.parallax is None
