@@ -115,9 +115,10 @@ class GroundMapper:
         self.parallax = (
             PlanarParams() if mapping.parallax_floor and calibration.intrinsics is None else None
         )
-        self._views: deque[tuple[NDArray[np.uint8], tuple[float, float, float]]] = deque(
-            maxlen=_STORED_VIEWS
-        )
+        # Earlier frames: grey image, robot pose, camera position in the world.
+        self._views: deque[
+            tuple[NDArray[np.uint8], tuple[float, float, float], NDArray[np.float64]]
+        ] = deque(maxlen=_STORED_VIEWS)
         self.parallax_frames = 0
         """Frames whose floor was tested by parallax (for the report)."""
         self._parallax_due_s = -math.inf
@@ -156,22 +157,18 @@ class GroundMapper:
         target = self.mapping.parallax_baseline_m
         best: tuple[NDArray[np.uint8], tuple[float, float, float]] | None = None
         best_error = math.inf
-        for view in self._views:
-            baseline = float(np.hypot(*(cam - _camera_xy(view[1], self.camera_xy_robot))))
-            turn = abs(math.remainder(here[2] - view[1][2], math.tau))
+        for view_gray, view_pose, view_cam in self._views:
+            baseline = float(np.hypot(*(cam - view_cam)))
+            turn = abs(math.remainder(here[2] - view_pose[2], math.tau))
             error = abs(baseline - target)
             if (
                 0.5 * target <= baseline <= 1.5 * target
                 and turn <= self.mapping.parallax_max_turn_rad
                 and error < best_error
             ):
-                best, best_error = view, error
-        newest = self._views[-1][1] if self._views else None
-        if (
-            newest is None
-            or float(np.hypot(*(cam - _camera_xy(newest, self.camera_xy_robot)))) >= _VIEW_STEP_M
-        ):
-            self._views.append((gray, here))
+                best, best_error = (view_gray, view_pose), error
+        if not self._views or float(np.hypot(*(cam - self._views[-1][2]))) >= _VIEW_STEP_M:
+            self._views.append((gray, here, cam))
         if best is not None and gray.shape == best[0].shape and now_s >= self._parallax_due_s:
             self._parallax_due_s = now_s + PARALLAX_PERIOD_S
             self.parallax_frames += 1
