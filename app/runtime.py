@@ -33,7 +33,7 @@ import time
 from collections import deque
 from collections.abc import Awaitable, Callable, Coroutine, Sequence
 from dataclasses import dataclass
-from typing import Any, Protocol, TypeVar
+from typing import Any, Protocol
 
 import numpy as np
 from numpy.typing import NDArray
@@ -60,7 +60,6 @@ from app.workers import StageWorker
 
 log = logging.getLogger("floornav.runtime")
 
-T = TypeVar("T")
 
 CAMERA_START_GRACE_S = 5.0
 WORKER_CLOSE_TIMEOUT_S = 5.0
