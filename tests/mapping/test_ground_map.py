@@ -87,7 +87,7 @@ def sim_mapper(**mapping: object) -> tuple[GroundMapper, object, object]:
 def test_parallax_confirms_floor_past_the_doorway_and_carries_it_between_tests() -> None:
     from app.mapping.ground_map import PARALLAX_CARRY_S, PARALLAX_PERIOD_S
 
-    mapper, renderer, segmenter = sim_mapper()
+    mapper, renderer, segmenter = sim_mapper(parallax_floor=True)
     plain, _, _ = sim_mapper(parallax_floor=False)
     assert mapper.parallax is not None and plain.parallax is None
     floor_cells = []
@@ -112,7 +112,8 @@ def test_parallax_is_off_for_frames_with_lens_distortion() -> None:
 
     from app.mapping.calibration import Intrinsics
 
-    mapper, _, _ = sim_mapper()
+    mapper, _, _ = sim_mapper(parallax_floor=True)
+    assert mapper.parallax is not None
     intrinsics = Intrinsics(
         np.array([[500.0, 0, 320], [0, 500.0, 240], [0, 0, 1]]), np.zeros(5), (640, 480), 0.1
     )
