@@ -155,8 +155,8 @@ class MappingConfig(StrictModel):
     parallax_floor: bool = False
     """Extend the floor past colour edges where motion parallax shows it lies flat (a
     rug, a threshold between floorings; `app.perception.planar`). Needs frames without
-    lens distortion (off when ``camera.intrinsics_file`` is set). Off by default: runs
-    with it faulted the serial link (most likely GIL contention; see the README)."""
+    lens distortion (off when ``camera.intrinsics_file`` is set). Off by default: it
+    does not yet raise coverage and costs latency (see the README)."""
     parallax_baseline_m: Annotated[float, Field(ge=0.03, le=0.5)] = 0.12
     """Camera travel between the two frames compared (nearest stored view is used)."""
     parallax_max_turn_rad: Annotated[float, Field(ge=0.0, le=1.0)] = 0.2
