@@ -4,6 +4,7 @@
 from __future__ import annotations
 
 import asyncio
+import gc
 import logging
 from pathlib import Path
 from typing import Any
@@ -45,7 +46,27 @@ async def _serve(runtime: Runtime, duration_s: float | None, token: str) -> None
     from app.web.server import WebService
 
     web = WebService(runtime, token=token)
-    await runtime.run(duration_s=duration_s, services=[web])
+    freezer = asyncio.create_task(_freeze_startup_objects(runtime))
+    try:
+        await runtime.run(duration_s=duration_s, services=[web])
+    finally:
+        freezer.cancel()
+
+
+async def _freeze_startup_objects(runtime: Runtime) -> None:
+    """Once the pipeline runs, move everything allocated so far (the imported libraries,
+    compiled kernels, the app) out of the garbage collector's reach. A full collection
+    otherwise walks those ~130k objects every time: 50-65 ms measured, during which every
+    thread, the simulated Uno's included, waits."""
+    while runtime.maps.peek() is None:
+        await asyncio.sleep(0.1)
+    gc.collect()
+    gc.freeze()
+    log.info(
+        "garbage collector: %d start-up objects frozen",
+        gc.get_freeze_count(),
+        extra={"event": "gc_freeze"},
+    )
 
 
 def run_daemon(

@@ -150,3 +150,25 @@ def test_systemd_gets_ready_and_watchdog_pings(tmp_path: Path) -> None:
         proc.communicate(timeout=20)
         sock.close()
     assert proc.returncode == 0
+
+
+async def test_startup_objects_are_frozen_once_the_first_map_exists() -> None:
+    import asyncio
+    import gc
+    from types import SimpleNamespace
+
+    from app.channels import LatestSlot
+    from app.daemon import _freeze_startup_objects
+
+    maps: LatestSlot[int] = LatestSlot("maps")
+    runtime = SimpleNamespace(maps=maps)
+    gc.unfreeze()
+    task = asyncio.create_task(_freeze_startup_objects(runtime))  # type: ignore[arg-type]
+    try:
+        await asyncio.sleep(0.25)
+        assert not task.done() and gc.get_freeze_count() == 0  # waits for the pipeline
+        maps.publish(1)
+        await asyncio.wait_for(task, 2.0)
+        assert gc.get_freeze_count() > 10000  # the imported libraries, at least
+    finally:
+        gc.unfreeze()
