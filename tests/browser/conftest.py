@@ -10,6 +10,7 @@ a clean state (`robot` fixture: no e-stop, no teleop driver).
 from __future__ import annotations
 
 import asyncio
+import gc
 import os
 import threading
 import time
@@ -131,9 +132,16 @@ def live_server() -> Iterator[LiveServer]:
         if time.monotonic() > deadline:
             raise RuntimeError("no perceived frame within the start-up timeout")
         time.sleep(0.2)
+    # Like `floornav run` (app/daemon.py): freeze what exists once the pipeline runs.
+    # By now this process also holds every earlier test's objects, and a full collection
+    # over them stalls the test daemon's threads (the simulated Uno's link faulted and
+    # the video latency doubled in one CI run).
+    gc.collect()
+    gc.freeze()
     try:
         yield server
     finally:
+        gc.unfreeze()
         stop.set()
         thread.join(30)
 
