@@ -2,6 +2,7 @@
 
 from __future__ import annotations
 
+import gc
 import os
 import socket
 from pathlib import Path
@@ -57,6 +58,15 @@ def pytest_configure(config: pytest.Config) -> None:
             name.startswith("FLOORNAV_") and "__" in name
         ):
             del os.environ[name]
+
+
+def pytest_collection_finish(session: pytest.Session) -> None:
+    """Freeze everything collection imported (~250k objects): a full garbage collection
+    over them takes ~150 ms, which stalls the in-process simulated Uno and event loops
+    past their 50 ms ACK and 200 ms silence deadlines, failing timing tests at random.
+    The daemon does the same after start-up (app/daemon.py)."""
+    gc.collect()
+    gc.freeze()
 
 
 def pytest_collection_modifyitems(config: pytest.Config, items: list[pytest.Item]) -> None:
