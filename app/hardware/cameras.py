@@ -35,6 +35,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.hardware.interfaces import CameraFrame, DeviceState, DeviceStatus
+from app.imageio import ImageFileError, read_bgr
 from app.mapping.frames import Pose2D
 from app.sim.render import RenderedFrame, Renderer
 
@@ -267,11 +268,14 @@ class ReplayCamera(_ThreadedCamera):
                 offset = times[k] if times is not None and self.fps is None else k * period
                 if not self._pace(start, offset):
                     return
-                image = cv2.imread(str(path), cv2.IMREAD_COLOR)
-                if image is None:
-                    self._set_status(DeviceState.FAILED, f"{path}: unreadable image")
+                # The commands' reader: an oversized or lying file is refused from its
+                # header instead of being decoded into gigabytes on the camera thread.
+                try:
+                    image = read_bgr(path)
+                except ImageFileError as exc:
+                    self._set_status(DeviceState.FAILED, str(exc))
                     return
-                self._publish(np.asarray(image, np.uint8), time.monotonic())
+                self._publish(image, time.monotonic())
                 self._set_status(DeviceState.CONNECTED)
             if not self.loop:
                 self._set_status(DeviceState.ENDED, f"{self.source}: end")
