@@ -16,6 +16,7 @@ from numpy.typing import NDArray
 
 from app.imageio import read_bgr
 from app.mapping.calibration import (
+    DETECT_MAX_SIDE_PX,
     BoardPlacement,
     CalibrationError,
     FloorCalibration,
@@ -618,3 +619,21 @@ def test_floor_homography_on_every_real_floor_photo(name: str) -> None:
         )
         assert fit.reprojection_rms_px <= 1.0, (file, lens is not None)
         assert fit.inliers >= 140, (file, lens is not None)
+
+
+def test_a_board_in_a_huge_photo_is_found_on_a_small_copy_and_refined_at_full_size(
+    board_photos: list[tuple[str, NDArray[np.uint8]]],
+) -> None:
+    """Detection runs on a copy of at most DETECT_MAX_SIDE_PX (bounded time and memory);
+    the corners still come from the full-resolution image."""
+    _, photo = board_photos[0]
+    native = find_chessboard(photo, VIEW_PATTERN)
+    assert native is not None
+    factor = 5  # 3200x2400 px, above the detection limit
+    big = cv2.resize(photo, None, fx=factor, fy=factor, interpolation=cv2.INTER_CUBIC)
+    assert max(big.shape) > DETECT_MAX_SIDE_PX
+    corners = find_chessboard(big, VIEW_PATTERN)
+    assert corners is not None
+    # Pixel centres: x_big = factor * (x + 0.5) - 0.5.
+    back = (corners + 0.5) / factor - 0.5
+    assert np.abs(back - native).max() < 0.25
