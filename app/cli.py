@@ -4,7 +4,7 @@ from __future__ import annotations
 
 import argparse
 import sys
-from collections.abc import Sequence
+from collections.abc import Iterable, Sequence
 from pathlib import Path
 
 from app.config import DEFAULT_CONFIG_PATH, ConfigError, FloornavConfig, load_config
@@ -46,30 +46,81 @@ def cmd_run(args: argparse.Namespace) -> int:
     )
 
 
+def _check_segment_args(args: argparse.Namespace) -> None:
+    """Refuse option mixes that would overwrite outputs, before any image is read."""
+    images: list[Path] = args.images
+    if args.out is not None and len(images) > 1:
+        raise ValueError(
+            f"--out names one overlay file but {len(images)} images were given "
+            "(use --mask-out DIR, with --overlay for overlays there)"
+        )
+    if args.mask_out is not None or args.overlay:
+        stems: dict[str, Path] = {}
+        for path in images:
+            if path.stem in stems and stems[path.stem] != path:
+                raise ValueError(
+                    f"{stems[path.stem]} and {path} would both write {path.stem}_floor.*"
+                )
+            stems[path.stem] = path
+
+
 def cmd_segment(args: argparse.Namespace) -> int:
-    from app.imageio import read_bgr, write_image_atomic
+    """Segment each image; write its mask (--mask-out) and/or its overlay.
+
+    An unreadable image is reported on stderr and skipped so one bad file in a batch
+    does not lose the others' masks; the exit code is then 1.
+    """
+    import time
+
+    import numpy as np
+
+    from app.imageio import ImageFileError, read_bgr, write_image_atomic
     from app.perception.overlay import draw_overlay
     from app.perception.pipeline import FloorSegmenter
 
+    _check_segment_args(args)
+    mask_dir: Path | None = args.mask_out
+    # Without --mask-out the command writes overlays as it always did.
+    write_overlay = mask_dir is None or args.out is not None or args.overlay
     config = _load(args.config)
     segmenter = FloorSegmenter(config.perception, method=args.method)
-    image = read_bgr(args.image)
-    result = segmenter.segment(image)
-    height, width = image.shape[:2]
-    overlay = draw_overlay(
-        image,
-        result.floor_mask,
-        safe_zone_corners_px=segmenter.zone.corners_px(width, height),
-        labels=result.labels,
-    )
-    out = args.out or Path(f"{args.image.stem}_floor.overlay.png")
-    write_image_atomic(out, overlay)
-    floor_pct = 100.0 * float(result.floor_mask.mean())
-    timings = ", ".join(f"{k} {v:.1f}" for k, v in result.timings_ms.items())
-    print(f"{args.image}: method {result.method}, floor {floor_pct:.1f}% of the image")
-    print(f"timings ms: {timings}")
-    print(f"overlay written to {out}")
-    return 0
+    if mask_dir is not None:
+        mask_dir.mkdir(parents=True, exist_ok=True)
+    failed = 0
+    for path in args.images:
+        try:
+            image = read_bgr(path)
+        except ImageFileError as exc:
+            print(f"floornav: error: {exc}", file=sys.stderr)
+            failed += 1
+            continue
+        start_s = time.perf_counter()
+        result = segmenter.segment(image)
+        segment_ms = (time.perf_counter() - start_s) * 1e3
+        height, width = image.shape[:2]
+        written = []
+        if mask_dir is not None:
+            mask_path = mask_dir / f"{path.stem}_floor.png"
+            mask = np.where(result.floor_mask, 255, 0).astype(np.uint8)
+            write_image_atomic(mask_path, mask)
+            written.append(f"mask {mask_path}")
+        if write_overlay:
+            overlay = draw_overlay(
+                image,
+                result.floor_mask,
+                safe_zone_corners_px=segmenter.zone.corners_px(width, height),
+                labels=result.labels,
+            )
+            overlay_dir = mask_dir if mask_dir is not None else Path()
+            out = args.out or overlay_dir / f"{path.stem}_floor.overlay.png"
+            write_image_atomic(out, overlay)
+            written.append(f"overlay {out}")
+        floor_pct = 100.0 * float(result.floor_mask.mean())
+        print(
+            f"{path}: method {result.method}, floor {floor_pct:.1f}%, {segment_ms:.1f} ms"
+            f" -> {', '.join(written)}"
+        )
+    return 1 if failed else 0
 
 
 def cmd_eval(args: argparse.Namespace) -> int:
@@ -77,7 +128,11 @@ def cmd_eval(args: argparse.Namespace) -> int:
     from app.perception.pipeline import METHODS
 
     config = _load(args.config)
-    methods = sorted(METHODS) if args.method == "all" else [args.method or config.perception.method]
+    methods = _methods(args.method, config, METHODS)
+    if args.cv:
+        return _eval_cv(args, config, methods)
+    if args.folds is not None:
+        raise ValueError("--folds needs --cv")
     report = evaluate(args.folders, methods, config.perception, progress=stderr_progress)
     summary = report.summary(config.perception.method)
     if args.json:
@@ -90,6 +145,55 @@ def cmd_eval(args: argparse.Namespace) -> int:
     if not scored:
         print("floornav eval: no labelled image could be scored", file=sys.stderr)
     return 0 if scored else 1
+
+
+def cmd_eval_video(args: argparse.Namespace) -> int:
+    from app.perception.pipeline import METHODS
+    from app.video_eval import evaluate_videos, format_video_table, stderr_progress
+
+    config = _load(args.config)
+    methods = sorted(METHODS) if args.method == "all" else [args.method or config.perception.method]
+    summary = evaluate_videos(
+        args.videos,
+        methods,
+        config.perception,
+        stride=args.stride,
+        max_frames=args.max_frames,
+        progress=stderr_progress,
+    )
+    if args.json:
+        print_json(summary)
+    else:
+        print(format_video_table(summary))
+    if not summary["videos"]:
+        print("floornav eval-video: no video could be read by any method", file=sys.stderr)
+        return 1
+    return 0
+
+
+def _methods(option: str | None, config: FloornavConfig, known: Iterable[str]) -> list[str]:
+    """``--method``: a name, comma-separated names, or ``all``; default from the config."""
+    if option == "all":
+        return sorted(known)
+    return (option or config.perception.method).split(",")
+
+
+def _eval_cv(args: argparse.Namespace, config: FloornavConfig, methods: list[str]) -> int:
+    from app.crossval import cross_validate, format_cv_table
+    from app.crossval import stderr_progress as cv_progress
+
+    if args.folds is not None and args.folds < 2:
+        raise ValueError(f"--folds must be at least 2, got {args.folds}")
+    summary = cross_validate(
+        args.folders, methods, config.perception, n_folds=args.folds, progress=cv_progress
+    )
+    if not args.per_image:
+        summary.pop("per_image", None)
+    if args.json:
+        print_json(summary)
+    else:
+        print(format_cv_table(summary))
+    return 0
 
 
 def cmd_eval_superpixels(args: argparse.Namespace) -> int:
@@ -152,7 +256,9 @@ def cmd_bench(args: argparse.Namespace) -> int:
     from app.benchmarks.sim import bench_render
 
     config = _load(args.config)
-    perception = config.perception.model_copy(update={"method": args.method})
+    perception = config.perception.model_copy(
+        update={"method": args.method or config.perception.method}
+    )
     with restored_affinity():
         result = run_bench(perception, args.datasets, repeats=args.repeats)
         grid = bench_grid_update(max(1, args.repeats))
@@ -195,19 +301,65 @@ def build_parser() -> argparse.ArgumentParser:
     add_config(p)
     p.set_defaults(func=cmd_run)
 
-    p = sub.add_parser("segment", help="segment the floor in one image and write an overlay")
-    p.add_argument("image", type=Path)
+    p = sub.add_parser(
+        "segment", help="segment the floor in images; write floor masks and/or overlays"
+    )
+    p.add_argument("images", type=Path, nargs="+", metavar="IMAGE")
     p.add_argument("--method", help="segmentation method (default: from config)")
-    p.add_argument("--out", type=Path, help="overlay PNG (default: IMAGE_floor.overlay.png)")
+    p.add_argument(
+        "--out",
+        type=Path,
+        help="overlay PNG, one IMAGE only (default: NAME_floor.overlay.png, in DIR with "
+        "--mask-out)",
+    )
+    p.add_argument(
+        "--mask-out",
+        type=Path,
+        metavar="DIR",
+        help="write DIR/NAME_floor.png per image (8-bit, 255 = floor); no overlays then "
+        "unless --out or --overlay",
+    )
+    p.add_argument(
+        "--overlay",
+        action="store_true",
+        help="with --mask-out, also write DIR/NAME_floor.overlay.png",
+    )
     add_config(p)
     p.set_defaults(func=cmd_segment)
 
     p = sub.add_parser("eval", help="score methods on folders of NAME.jpg + NAME_floor.png")
     p.add_argument("folders", type=Path, nargs="+", metavar="DIR")
-    p.add_argument("--method", help="a method name, or 'all' (default: from config)")
+    p.add_argument(
+        "--method", help="a method name, names joined by commas, or 'all' (default: from config)"
+    )
     p.add_argument("--json", action="store_true", help="print one JSON object")
+    p.add_argument(
+        "--cv",
+        action="store_true",
+        help="out-of-scene scores: refit each method without the held-out scenes",
+    )
+    p.add_argument(
+        "--folds",
+        type=int,
+        help="with --cv: folds of whole scenes (default: leave one scene out)",
+    )
+    p.add_argument(
+        "--per-image", action="store_true", help="with --cv --json: every image's scores too"
+    )
     add_config(p)
     p.set_defaults(func=cmd_eval)
+
+    p = sub.add_parser(
+        "eval-video",
+        help="label-free checks on videos: mask stability, bottom-half floor, ms per frame",
+    )
+    p.add_argument("videos", type=Path, nargs="+", metavar="VIDEO")
+    p.add_argument("--method", help="a method name, or 'all' (default: from config)")
+    p.add_argument("--stride", type=int, default=1, help="process every Nth frame (default 1)")
+    p.add_argument("--max-frames", type=int, help="process at most N frames of each video")
+    p.add_argument("--json", action="store_true", help="print one JSON object")
+    add_config(p)
+    p.set_defaults(func=cmd_eval_video)
 
     p = sub.add_parser(
         "eval-superpixels",
@@ -240,11 +392,7 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("bench", help="time the pipeline's stages against the reference")
     p.add_argument("--json", action="store_true", help="print one JSON object")
     p.add_argument("--repeats", type=int, default=5, help="passes over the bench images")
-    p.add_argument(
-        "--method",
-        default="floornav",
-        help="the segmentation method to time (default floornav, the superpixel pipeline)",
-    )
+    p.add_argument("--method", help="the segmentation method to time (default: from config)")
     p.add_argument(
         "--datasets", type=Path, default=DEFAULT_DATASETS_DIR, help="the shared datasets folder"
     )

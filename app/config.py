@@ -25,7 +25,7 @@ from pydantic_settings import (
 
 DEFAULT_CONFIG_PATH = Path("config.toml")
 
-FloorMethod = Literal["thesis", "thesis_junction", "flood_fill", "floornav"]
+FloorMethod = Literal["floornet", "thesis", "thesis_junction", "flood_fill", "floornav"]
 """Floor segmentation methods selectable by name (see ``app.perception.pipeline``)."""
 
 Fraction = Annotated[float, Field(ge=0.0, le=1.0)]
@@ -84,18 +84,24 @@ class JunctionConfig(StrictModel):
 class PerceptionConfig(StrictModel):
     """Floor segmentation from one camera frame (thesis chapters 2-5)."""
 
-    method: FloorMethod = "floornav"
+    method: FloorMethod = "floornet"
     smoothing_sigma_px: Annotated[float, Field(ge=0.0, le=20.0)] = 5.0
     color_space: Literal["lab", "rgb"] = "lab"
     slic_backend: Literal["numba", "skimage"] = "numba"
     n_superpixels: Annotated[int, Field(ge=4, le=5000)] = 200
     compactness: Annotated[float, Field(gt=0.0, le=100.0)] = 10.0
     slic_max_iter: Annotated[int, Field(ge=1, le=50)] = 10
-    flood_fill_tolerance: Annotated[float, Field(gt=0.0, le=100.0)] = 10.0
+    flood_fill_tolerance: Annotated[float, Field(gt=0.0, le=100.0)] = 18.0
     fill_gaps_px: Annotated[int, Field(ge=0, le=51)] = 0
     """Morphological closing of the floor mask with a disk this wide (0: off, as in the
     thesis). Closes seams between planks or tiles that a pixel method leaves as thin
     not-floor lines (the map would hold them as walls); obstacles wider than this stay."""
+    floornet_model_path: str = ""
+    """ONNX model of the ``floornet`` method; empty: the one shipped with floornav
+    (``scripts/train_floor_net.py`` writes it)."""
+    zone_min_floor_confidence: Fraction = 0.5
+    """Below this ``zone_floor_confidence`` the safe zone is taken for an obstacle, not
+    floor: the way ahead counts as blocked and the robot turns to look elsewhere."""
     safe_zone: SafeZoneConfig = SafeZoneConfig()
     junction: JunctionConfig = JunctionConfig()
 

@@ -142,9 +142,11 @@ def test_bench_json_has_the_promised_shape(capsys: pytest.CaptureFixture[str]) -
     for resolution in ("640x480", "320x240"):
         entry = result["resolutions"][resolution]
         assert entry["total_ms"] > 0
-        assert {"smooth", "color", "slic", "floor_model"} <= set(entry["stages_ms"])
+        assert {"input", "network"} <= set(entry["stages_ms"])  # floornet, the default
         assert all(s["min"] <= s["median"] <= s["max"] for s in entry["stages_ms"].values())
+    assert result["method"] == "floornet"
     assert result["reference"]["640x480"]["total_ms"] > 0
+    assert result["reference"]["640x480"]["method"] == "floornav"
     assert result["grid_update"]["median"] > 0
     assert result["sim_render"]["fps"] > 0
     assert result["speedup_vs_reference_640x480"] > 1.0
@@ -171,3 +173,81 @@ def test_bench_leaves_the_process_on_all_its_cpus() -> None:
         pin_to_one_cpu()
         assert len(os.sched_getaffinity(0)) == 1
     assert os.sched_getaffinity(0) == before
+
+
+def _mask_values_ok(path: Path, width: int, height: int) -> np.ndarray:
+    """The mask at ``path``: 8-bit, one channel, the input's size, only 0 and 255."""
+    mask = cv2.imread(str(path), cv2.IMREAD_UNCHANGED)
+    assert mask is not None, path
+    assert mask.dtype == np.uint8 and mask.shape == (height, width)
+    assert set(np.unique(mask).tolist()) <= {0, 255}
+    return mask
+
+
+def test_segment_writes_a_mask_per_image(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    big, truth = room_scene(640, 480, seed=2)
+    odd, _ = room_scene(333, 251, seed=4)
+    cv2.imwrite(str(tmp_path / "room.png"), big)
+    cv2.imwrite(str(tmp_path / "odd.jpg"), odd)
+    masks = tmp_path / "out" / "masks"  # created, parents too
+    code = main(
+        ["segment", str(tmp_path / "room.png"), str(tmp_path / "odd.jpg"), "--mask-out", str(masks)]
+    )
+    assert code == 0
+    assert sorted(p.name for p in masks.iterdir()) == ["odd_floor.png", "room_floor.png"]
+    room = _mask_values_ok(masks / "room_floor.png", 640, 480)
+    _mask_values_ok(masks / "odd_floor.png", 333, 251)
+    # 255 is floor: most of the true floor is marked, little of the wall.
+    assert (room[truth] == 255).mean() > 0.5
+    assert (room[:100] == 255).mean() < 0.2
+    lines = capsys.readouterr().out.splitlines()
+    assert len(lines) == 2
+    assert all("method" in line and "floor" in line and " ms" in line for line in lines)
+    assert not list(tmp_path.glob("*.overlay.png"))  # masks only, no overlays
+
+
+def test_segment_overlays_beside_masks_on_request(tmp_path: Path) -> None:
+    image, _ = room_scene(96, 72)
+    cv2.imwrite(str(tmp_path / "a.png"), image)
+    masks = tmp_path / "masks"
+    assert main(["segment", str(tmp_path / "a.png"), "--mask-out", str(masks), "--overlay"]) == 0
+    assert sorted(p.name for p in masks.iterdir()) == ["a_floor.overlay.png", "a_floor.png"]
+    overlay = cv2.imread(str(masks / "a_floor.overlay.png"))
+    assert overlay is not None and overlay.shape == (72, 96, 3)
+
+
+def test_segment_goes_on_past_a_bad_file_and_exits_1(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    for name, seed in (("a.png", 1), ("c.png", 3)):
+        cv2.imwrite(str(tmp_path / name), room_scene(120, 90, seed=seed)[0])
+    (tmp_path / "b.jpg").write_bytes(b"\xff\xd8 this is not a jpeg")
+    masks = tmp_path / "masks"
+    images = [str(tmp_path / n) for n in ("a.png", "b.jpg", "missing.png", "c.png")]
+    assert main(["segment", *images, "--mask-out", str(masks)]) == 1
+    assert sorted(p.name for p in masks.iterdir()) == ["a_floor.png", "c_floor.png"]
+    for name in ("a_floor.png", "c_floor.png"):
+        _mask_values_ok(masks / name, 120, 90)
+    captured = capsys.readouterr()
+    assert "b.jpg: not a readable image" in captured.err
+    assert "missing.png: no such file" in captured.err
+    assert len(captured.out.splitlines()) == 2
+
+
+def test_segment_out_is_for_one_image_only(
+    tmp_path: Path, capsys: pytest.CaptureFixture[str]
+) -> None:
+    image, _ = room_scene(64, 48)
+    for name in ("a.png", "b.png"):
+        cv2.imwrite(str(tmp_path / name), image)
+    two = [str(tmp_path / "a.png"), str(tmp_path / "b.png")]
+    assert main(["segment", *two, "--out", str(tmp_path / "o.png")]) == 1
+    assert "--out names one overlay file but 2 images" in capsys.readouterr().err
+    assert not (tmp_path / "o.png").exists()
+    (tmp_path / "x").mkdir()
+    cv2.imwrite(str(tmp_path / "x" / "a.jpg"), image)
+    clash = [str(tmp_path / "a.png"), str(tmp_path / "x" / "a.jpg")]
+    assert main(["segment", *clash, "--mask-out", str(tmp_path / "m")]) == 1
+    assert "would both write a_floor" in capsys.readouterr().err

@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 from app.cli import main
-from app.config import ConfigError, load_config
+from app.config import ConfigError, PerceptionConfig, load_config
 
 from .conftest import PROJECT_ROOT
 
@@ -81,3 +81,10 @@ def test_validate_config_command(tmp_path: Path, capsys: pytest.CaptureFixture[s
     out = capsys.readouterr().out
     assert "perception.n_superpixels" in out
     assert "perception.method" in out
+
+
+def test_the_shipped_perception_section_is_the_models_default() -> None:
+    """Tests built on PerceptionConfig() see the same perception as the daemon."""
+    shipped = load_config(PROJECT_ROOT / "config.toml").perception
+    assert shipped == PerceptionConfig()
+    assert shipped.method == "floornet"

@@ -14,6 +14,14 @@ Methods (``PerceptionConfig.method``):
     model of the safe zone, position and texture cues weighed by a fitted logistic model,
     the per-column free-space structure, and one self-training pass
     (`app.perception.floor_model`).
+``floornet`` (default)
+    A small convolutional network on the frame's colour, absolute and relative to the
+    safe zone's, run by OpenCV's ``dnn`` (`app.perception.floor_net`). It also says how
+    sure it is that the safe zone itself is floor, and calls an obstacle standing in the
+    zone what it is.
+
+Every method reports ``zone_floor_confidence``: for ``floornet`` the network's mean floor
+probability inside the safe zone, for the others the share of the zone they call floor.
 """
 
 from __future__ import annotations
@@ -21,6 +29,7 @@ from __future__ import annotations
 import time
 from collections.abc import Callable
 from dataclasses import dataclass, field, replace
+from pathlib import Path
 
 import cv2
 import numpy as np
@@ -35,6 +44,16 @@ from app.perception.features import (
     superpixel_features,
 )
 from app.perception.floor_model import boundary_to_image, floor_model_segment, grid_stats
+from app.perception.floor_net import (
+    DEFAULT_MODEL_PATH,
+    INPUT_HEIGHT_PX,
+    INPUT_WIDTH_PX,
+    OUTPUT_HEIGHT_PX,
+    OUTPUT_WIDTH_PX,
+    FloorNet,
+    floor_mask,
+    network_input,
+)
 from app.perception.floor_weights import FIRST_PASS_WEIGHTS, SECOND_PASS_WEIGHTS
 from app.perception.image_checks import check_bgr_image
 from app.perception.junctions import JunctionResult, floor_junction_mask
@@ -60,6 +79,10 @@ class FloorResult:
     method : str
     timings_ms : dict
         Wall time of each stage in milliseconds, in pipeline order, plus ``"total"``.
+    zone_floor_confidence : float in [0, 1]
+        How sure the method is that the safe zone is floor (the thesis's premise):
+        ``floornet``'s mean floor probability in the zone, else the share of the zone
+        the method calls floor. Low means an obstacle stands right ahead.
     """
 
     floor_mask: NDArray[np.bool_]
@@ -68,6 +91,7 @@ class FloorResult:
     safe_zone_mask: NDArray[np.bool_]
     method: str
     timings_ms: dict[str, float] = field(default_factory=dict)
+    zone_floor_confidence: float = 1.0
 
 
 def trapezoid_from_config(zone: SafeZoneConfig) -> Trapezoid:
@@ -129,6 +153,13 @@ class FloorSegmenter:
         self.zone = trapezoid_from_config(config.safe_zone)
         self._zone_cache: tuple[tuple[int, int], NDArray[np.bool_]] | None = None
         self._color_buffer: NDArray[np.float32] | None = None
+        self._net: FloorNet | None = None
+        if self.method == "floornet":
+            # Loaded here, not on the first frame: a missing model file fails at start-up.
+            self._net = FloorNet(Path(config.floornet_model_path or DEFAULT_MODEL_PATH))
+            self._net_zone_in = safe_zone_mask((INPUT_HEIGHT_PX, INPUT_WIDTH_PX), self.zone)
+            out_shape = (OUTPUT_HEIGHT_PX, OUTPUT_WIDTH_PX)
+            self._net_zone_out = safe_zone_mask(out_shape, self.zone)
 
     def zone_mask(self, shape: tuple[int, int]) -> NDArray[np.bool_]:
         if self._zone_cache is None or self._zone_cache[0] != shape:
@@ -151,6 +182,10 @@ class FloorSegmenter:
         """
         bgr = check_bgr_image(image)
         result = METHODS[self.method](self, bgr)
+        if result.method != "floornet":
+            zone_floor = result.floor_mask[result.safe_zone_mask]
+            share = float(zone_floor.mean()) if zone_floor.size else 0.0
+            result = replace(result, zone_floor_confidence=share)
         gap = self.config.fill_gaps_px
         if gap > 0:
             start = time.perf_counter()
@@ -270,7 +305,30 @@ def _segment_floornav(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorResul
     return FloorResult(floor, sp.labels, superpixel_floor, sp.zone_mask, "floornav", watch.finish())
 
 
+def _segment_floornet(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorResult:
+    watch = _Stopwatch()
+    zone_mask = seg.zone_mask(bgr.shape[:2])
+    watch.lap("safe_zone")
+    blob = network_input(bgr, seg._net_zone_in)
+    watch.lap("input")
+    assert seg._net is not None
+    output = seg._net.run(blob, seg._net_zone_out)
+    watch.lap("network")
+    floor = floor_mask(output, zone_mask, min_zone_confidence=seg.config.zone_min_floor_confidence)
+    watch.lap("combine")
+    return FloorResult(
+        floor,
+        None,
+        None,
+        zone_mask,
+        "floornet",
+        watch.finish(),
+        zone_floor_confidence=output.zone_floor_probability,
+    )
+
+
 METHODS: dict[str, Callable[[FloorSegmenter, NDArray[np.uint8]], FloorResult]] = {
+    "floornet": _segment_floornet,
     "thesis": _segment_thesis,
     "thesis_junction": _segment_thesis_junction,
     "flood_fill": _segment_flood_fill,

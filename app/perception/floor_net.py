@@ -1,0 +1,154 @@
+"""The ``floornet`` floor model: a small convolutional network run by OpenCV's ``dnn``.
+
+Why a network: the hand-weighed superpixel cues of ``floornav`` learned the shared
+scenes (out-of-scene IoU 0.64). A small fully convolutional encoder-decoder sees the
+same transferable cues at once (the colour of each pixel relative to the safe zone,
+texture, edges, the layout of walls and the wall-floor junction) and, unlike the
+column model, can say "no floor here" anywhere, also in the safe zone itself.
+
+Input (`network_input`): the frame at `INPUT_WIDTH_PX` x `INPUT_HEIGHT_PX`, as six
+channels: CIELAB (scaled to about [-1, 1]) and CIELAB minus the safe zone's median
+colour (the thesis's self-supervision, relative rather than absolute so it carries to
+floors never seen). Output: one floor logit per cell of half the input size.
+
+The weights are fitted by ``scripts/train_floor_net.py`` on the shared labelled images
+and shipped as an ONNX file beside this module; nothing is downloaded at run time.
+"""
+
+from __future__ import annotations
+
+import threading
+from dataclasses import dataclass
+from pathlib import Path
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+INPUT_WIDTH_PX = 160
+INPUT_HEIGHT_PX = 128
+"""Network input size. 160 columns keep 4 px of a 640 px frame per cell (the grid the
+``floornav`` cues used); the height is a multiple of 16 for the four stride-2 levels."""
+
+OUTPUT_WIDTH_PX = INPUT_WIDTH_PX // 2
+OUTPUT_HEIGHT_PX = INPUT_HEIGHT_PX // 2
+"""The network answers at half the input size (its stem has stride 2)."""
+N_INPUT_CHANNELS = 6
+DEFAULT_MODEL_PATH = Path(__file__).with_name("models") / "floor_net.onnx"
+
+_LAB_CENTER = np.array([50.0, 0.0, 0.0], dtype=np.float32)
+_LAB_SCALE = np.array([50.0, 40.0, 40.0], dtype=np.float32)
+"""L in [0, 100] and a, b in about [-40, 40] mapped to about [-1, 1]."""
+
+
+class FloorNetError(RuntimeError):
+    """The floor network's model file is missing or unusable."""
+
+
+def network_input(bgr: NDArray[np.uint8], zone_mask: NDArray[np.bool_]) -> NDArray[np.float32]:
+    """The network's (1, 6, INPUT_HEIGHT_PX, INPUT_WIDTH_PX) float32 input blob.
+
+    Parameters
+    ----------
+    bgr : (H, W, 3) uint8, the frame (any size; it is resized, aspect not kept)
+    zone_mask : (INPUT_HEIGHT_PX, INPUT_WIDTH_PX) bool, the safe zone at input size
+
+    Notes
+    -----
+    The frame is area-resized before the colour conversion, which also smooths it
+    (a 640 px frame averages 4x4 pixels per cell, in place of the thesis's Gaussian).
+    """
+    small = cv2.resize(bgr, (INPUT_WIDTH_PX, INPUT_HEIGHT_PX), interpolation=cv2.INTER_AREA)
+    lab = cv2.cvtColor(small.astype(np.float32) * (1.0 / 255.0), cv2.COLOR_BGR2Lab)
+    lab_scaled = (lab - _LAB_CENTER) / _LAB_SCALE
+    zone_colour = np.median(lab_scaled[zone_mask], axis=0)
+    relative = lab_scaled - zone_colour
+    stacked = np.concatenate([lab_scaled, relative], axis=2)
+    return np.ascontiguousarray(stacked.transpose(2, 0, 1)[None], dtype=np.float32)
+
+
+@dataclass(frozen=True)
+class FloorNetOutput:
+    """Per-pixel floor probability at input size, and the safe zone's mean of it.
+
+    Attributes
+    ----------
+    probability : (OUTPUT_HEIGHT_PX, OUTPUT_WIDTH_PX) float32 in [0, 1]
+    zone_floor_probability : float, mean probability inside the safe zone: how sure the
+        network is that the safe zone really is floor (the thesis's premise)
+    """
+
+    probability: NDArray[np.float32]
+    zone_floor_probability: float
+
+
+class FloorNet:
+    """Loads the ONNX floor network once and runs it on frames.
+
+    One instance per thread (an OpenCV ``dnn.Net`` is not thread-safe); the lock makes a
+    shared instance safe but serial.
+    """
+
+    def __init__(self, model_path: Path = DEFAULT_MODEL_PATH) -> None:
+        if not model_path.is_file():
+            raise FloorNetError(f"{model_path}: floor network model file not found")
+        try:
+            self._net = cv2.dnn.readNetFromONNX(str(model_path))
+        except cv2.error as exc:
+            raise FloorNetError(f"{model_path}: not a usable ONNX model ({exc})") from exc
+        self._lock = threading.Lock()
+        self.model_path = model_path
+
+    def run(self, blob: NDArray[np.float32], zone_mask: NDArray[np.bool_]) -> FloorNetOutput:
+        """Floor probabilities for one `network_input` blob.
+
+        ``zone_mask`` is the safe zone at the output size (OUTPUT_HEIGHT_PX,
+        OUTPUT_WIDTH_PX).
+        """
+        with self._lock:
+            self._net.setInput(blob)
+            logits = np.asarray(self._net.forward(), dtype=np.float32)
+        logits = logits.reshape(OUTPUT_HEIGHT_PX, OUTPUT_WIDTH_PX)
+        probability = 1.0 / (1.0 + np.exp(-np.clip(logits, -30.0, 30.0)))
+        zone_probability = float(probability[zone_mask].mean()) if zone_mask.any() else 0.0
+        return FloorNetOutput(probability.astype(np.float32), zone_probability)
+
+
+_shared: dict[Path, FloorNet] = {}
+_shared_lock = threading.Lock()
+
+
+def shared_floor_net(model_path: Path = DEFAULT_MODEL_PATH) -> FloorNet:
+    """One loaded network per model file for the process (loading costs ~10 ms)."""
+    with _shared_lock:
+        net = _shared.get(model_path)
+        if net is None:
+            net = _shared[model_path] = FloorNet(model_path)
+        return net
+
+
+def probability_to_mask(
+    probability: NDArray[np.float32], shape: tuple[int, int], *, threshold: float = 0.5
+) -> NDArray[np.bool_]:
+    """Floor mask at image size: bilinear upsampling of the probability, thresholded."""
+    height, width = shape
+    full = cv2.resize(probability, (width, height), interpolation=cv2.INTER_LINEAR)
+    return np.asarray(full > threshold, dtype=np.bool_)
+
+
+def floor_mask(
+    output: FloorNetOutput,
+    zone_mask: NDArray[np.bool_],
+    *,
+    min_zone_confidence: float,
+) -> NDArray[np.bool_]:
+    """The floor mask at the size of ``zone_mask`` (the image's safe zone).
+
+    When the network doubts the premise (``zone_floor_probability`` below
+    ``min_zone_confidence``) nothing in the safe zone is floor: an obstacle right ahead
+    is never called floor because it stands where the floor is assumed.
+    """
+    mask = probability_to_mask(output.probability, zone_mask.shape)
+    if output.zone_floor_probability < min_zone_confidence:
+        mask &= ~zone_mask
+    return mask

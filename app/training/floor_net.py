@@ -1,0 +1,234 @@
+"""Training the ``floornet`` floor network (needs the ``train`` extra: PyTorch, onnx).
+
+Used by ``scripts/train_floor_net.py`` (fit on every labelled image, export the ONNX
+file the daemon ships) and by ``floornav eval --cv --method floornet`` (one fit per
+fold of whole scenes, scored on the held-out scenes). Every constant below was fixed
+before any held-out score was looked at; none is tuned per fold.
+"""
+
+from __future__ import annotations
+
+import math
+from collections.abc import Callable, Sequence
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Any
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+from app.perception.floor_net import (
+    INPUT_HEIGHT_PX,
+    INPUT_WIDTH_PX,
+    OUTPUT_HEIGHT_PX,
+    OUTPUT_WIDTH_PX,
+    network_input,
+)
+from app.perception.safe_zone import Trapezoid, safe_zone_mask
+
+EPOCHS = 90
+BATCH = 12
+LEARNING_RATE = 3e-3
+WEIGHT_DECAY = 1e-4
+NEAR_NONFLOOR_WEIGHT = 3.0
+"""Non-floor pixels in the bottom 40 % weigh 3x: called floor, they are what the robot hits."""
+STORE_SCALE = 2
+"""Training images are kept at twice the input size so crops stay sharp."""
+
+
+def _torch() -> Any:
+    try:
+        import torch
+    except ImportError as exc:  # pragma: no cover - depends on the extra
+        raise RuntimeError(
+            "training the floor network needs PyTorch: pip install -e '.[train]'"
+        ) from exc
+    return torch
+
+
+@dataclass(frozen=True)
+class TrainingImage:
+    """One labelled image kept at ``STORE_SCALE`` x the network input size."""
+
+    bgr: NDArray[np.uint8]
+    floor: NDArray[np.uint8]
+
+
+def prepare(bgr: NDArray[np.uint8], floor: NDArray[np.bool_]) -> TrainingImage:
+    size = (INPUT_WIDTH_PX * STORE_SCALE, INPUT_HEIGHT_PX * STORE_SCALE)
+    small = np.asarray(cv2.resize(bgr, size, interpolation=cv2.INTER_AREA), dtype=np.uint8)
+    mask = cv2.resize(floor.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+    return TrainingImage(small, np.asarray(mask >= 0.5, dtype=np.uint8))
+
+
+def augment(
+    image: TrainingImage, rng: np.random.Generator
+) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+    """A random view of one image at network input size: what another camera, another
+    pitch and other light would show. Crops keep the image's bottom edge (the robot's
+    own floor) and move the horizon; colours, exposure, blur and noise vary."""
+    height, width = image.floor.shape
+    scale = rng.uniform(0.6, 1.0)
+    crop_h = round(height * scale)
+    crop_w = round(width * min(1.0, scale * rng.uniform(0.85, 1.15)))
+    x0 = int(rng.integers(0, width - crop_w + 1))
+    y0 = height - crop_h
+    bgr = image.bgr[y0:, x0 : x0 + crop_w]
+    floor = image.floor[y0:, x0 : x0 + crop_w]
+    if rng.random() < 0.5:
+        bgr, floor = bgr[:, ::-1], floor[:, ::-1]
+    size = (INPUT_WIDTH_PX, INPUT_HEIGHT_PX)
+    bgr = np.asarray(
+        cv2.resize(np.ascontiguousarray(bgr), size, interpolation=cv2.INTER_AREA), np.uint8
+    )
+    floor = np.asarray(
+        cv2.resize(np.ascontiguousarray(floor), size, interpolation=cv2.INTER_NEAREST), np.uint8
+    )
+    pixels = bgr.astype(np.float32)
+    # Exposure, contrast, white balance and a gamma curve.
+    pixels = pixels * rng.uniform(0.6, 1.4) + rng.uniform(-25, 25)
+    mean = pixels.mean(axis=(0, 1), keepdims=True)
+    pixels = (pixels - mean) * rng.uniform(0.7, 1.3) + mean
+    pixels *= rng.uniform(0.85, 1.15, size=3)
+    pixels = 255.0 * (np.clip(pixels, 0, 255) / 255.0) ** rng.uniform(0.7, 1.4)
+    if rng.random() < 0.4:  # vignetting, as cheap webcams show
+        yy, xx = np.mgrid[0:INPUT_HEIGHT_PX, 0:INPUT_WIDTH_PX].astype(np.float32)
+        r2 = ((xx / INPUT_WIDTH_PX - 0.5) ** 2 + (yy / INPUT_HEIGHT_PX - 0.5) ** 2) * 2
+        pixels *= (1.0 - rng.uniform(0.1, 0.5) * r2)[:, :, None]
+    if rng.random() < 0.3:
+        pixels = cv2.GaussianBlur(pixels, (0, 0), rng.uniform(0.5, 1.5))
+    pixels += rng.normal(0.0, rng.uniform(0.0, 6.0), size=pixels.shape)
+    return np.clip(pixels, 0, 255).astype(np.uint8), floor
+
+
+def input_zone_mask(zone: Trapezoid) -> NDArray[np.bool_]:
+    return safe_zone_mask((INPUT_HEIGHT_PX, INPUT_WIDTH_PX), zone)
+
+
+def build_model() -> Any:
+    """The network: a small U-Net, stride-2 stem, output at half the input size."""
+    torch = _torch()
+    nn = torch.nn
+
+    def block(c_in: int, c_out: int, stride: int = 1, dilation: int = 1) -> Any:
+        return nn.Sequential(
+            nn.Conv2d(c_in, c_out, 3, stride, padding=dilation, dilation=dilation, bias=False),
+            nn.BatchNorm2d(c_out),
+            nn.ReLU(inplace=True),
+        )
+
+    class FloorNetModule(nn.Module):  # type: ignore[misc,name-defined]
+        def __init__(self) -> None:
+            super().__init__()
+            self.enc1 = nn.Sequential(block(6, 16, 2), block(16, 16))
+            self.enc2 = nn.Sequential(block(16, 32, 2), block(32, 32))
+            self.enc3 = nn.Sequential(block(32, 64, 2), block(64, 64))
+            self.enc4 = nn.Sequential(block(64, 96, 2), block(96, 96), block(96, 96, dilation=2))
+            self.up = nn.Upsample(scale_factor=2, mode="nearest")
+            self.dec3 = block(96 + 64, 64)
+            self.dec2 = block(64 + 32, 32)
+            self.dec1 = block(32 + 16, 16)
+            self.head = nn.Conv2d(16, 1, 1)
+
+        def forward(self, x: Any) -> Any:
+            f1 = self.enc1(x)
+            f2 = self.enc2(f1)
+            f3 = self.enc3(f2)
+            f4 = self.enc4(f3)
+            d3 = self.dec3(torch.cat([self.up(f4), f3], 1))
+            d2 = self.dec2(torch.cat([self.up(d3), f2], 1))
+            d1 = self.dec1(torch.cat([self.up(d2), f1], 1))
+            return self.head(d1)
+
+    return FloorNetModule()
+
+
+ProgressFn = Callable[[int, float], None]
+
+
+def train(
+    images: Sequence[TrainingImage],
+    zone: Trapezoid,
+    *,
+    epochs: int = EPOCHS,
+    seed: int = 0,
+    progress: ProgressFn | None = None,
+) -> Any:
+    """Fit a fresh network on ``images``; returns the torch module in eval mode."""
+    torch = _torch()
+    torch.manual_seed(seed)
+    rng = np.random.default_rng(seed)
+    model = build_model()
+    optimiser = torch.optim.AdamW(model.parameters(), lr=LEARNING_RATE, weight_decay=WEIGHT_DECAY)
+    steps_per_epoch = max(1, math.ceil(len(images) / BATCH))
+    total_steps = epochs * steps_per_epoch
+    schedule = torch.optim.lr_scheduler.OneCycleLR(
+        optimiser, max_lr=LEARNING_RATE, total_steps=total_steps, pct_start=0.15
+    )
+    zone_mask = input_zone_mask(zone)
+    out_h, out_w = OUTPUT_HEIGHT_PX, OUTPUT_WIDTH_PX
+    near_rows = np.arange(out_h) >= out_h - round(0.4 * out_h)
+    model.train()
+    for epoch in range(epochs):
+        order = rng.permutation(len(images))
+        epoch_loss = 0.0
+        for step in range(steps_per_epoch):
+            batch = order[step * BATCH : (step + 1) * BATCH]
+            inputs, targets = [], []
+            for index in batch:
+                bgr, floor = augment(images[index], rng)
+                inputs.append(network_input(bgr, zone_mask)[0])
+                small = cv2.resize(
+                    floor.astype(np.float32), (out_w, out_h), interpolation=cv2.INTER_AREA
+                )
+                targets.append(small)
+            x = torch.from_numpy(np.stack(inputs))
+            y = torch.from_numpy(np.stack(targets)[:, None])
+            weight = torch.ones_like(y)
+            weight[:, :, near_rows, :] += (NEAR_NONFLOOR_WEIGHT - 1.0) * (
+                1.0 - y[:, :, near_rows, :]
+            )
+            logits = model(x)
+            bce = torch.nn.functional.binary_cross_entropy_with_logits(logits, y, weight=weight)
+            p = torch.sigmoid(logits)
+            inter = (p * y).sum(dim=(1, 2, 3))
+            union = (p + y - p * y).sum(dim=(1, 2, 3))
+            soft_iou = ((inter + 1.0) / (union + 1.0)).mean()
+            loss = bce + (1.0 - soft_iou)
+            optimiser.zero_grad()
+            loss.backward()
+            optimiser.step()
+            schedule.step()
+            epoch_loss += float(loss.detach())
+        if progress is not None:
+            progress(epoch + 1, epoch_loss / steps_per_epoch)
+    model.eval()
+    return model
+
+
+def predict_probability(model: Any, bgr: NDArray[np.uint8], zone: Trapezoid) -> NDArray[np.float32]:
+    """Floor probability at half the input size from a torch model (for CV scoring)."""
+    torch = _torch()
+    blob = network_input(bgr, input_zone_mask(zone))
+    with torch.no_grad():
+        logits = np.asarray(model(torch.from_numpy(blob)).numpy()[0, 0], dtype=np.float32)
+    return np.asarray(1.0 / (1.0 + np.exp(-logits)), dtype=np.float32)
+
+
+def export_onnx(model: Any, path: Path) -> None:
+    """Write the model as ONNX for OpenCV's dnn (opset 13, fixed input size)."""
+    torch = _torch()
+    path.parent.mkdir(parents=True, exist_ok=True)
+    dummy = torch.zeros(1, 6, INPUT_HEIGHT_PX, INPUT_WIDTH_PX)
+    tmp = path.with_suffix(".tmp.onnx")
+    torch.onnx.export(
+        model,
+        (dummy,),
+        str(tmp),
+        input_names=["input"],
+        output_names=["floor_logit"],
+        opset_version=13,
+        dynamo=False,
+    )
+    tmp.replace(path)

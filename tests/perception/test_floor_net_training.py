@@ -1,0 +1,64 @@
+"""Training and export of the floornet network (needs the ``train`` extra)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.config import PerceptionConfig
+from app.perception.floor_net import INPUT_HEIGHT_PX, INPUT_WIDTH_PX, FloorNet, network_input
+from app.perception.pipeline import trapezoid_from_config
+
+torch = pytest.importorskip("torch", reason="the train extra (PyTorch) is not installed")
+pytest.importorskip("onnx", reason="the train extra (onnx) is not installed")
+
+from app.training.floor_net import (  # noqa: E402
+    augment,
+    export_onnx,
+    input_zone_mask,
+    predict_probability,
+    prepare,
+    train,
+)
+
+ZONE = trapezoid_from_config(PerceptionConfig().safe_zone)
+
+
+def _scene(seed: int) -> tuple[np.ndarray, np.ndarray]:
+    rng = np.random.default_rng(seed)
+    image = np.empty((120, 160, 3), np.uint8)
+    image[:60] = rng.integers(100, 255, 3)
+    image[60:] = rng.integers(0, 100, 3)
+    truth = np.zeros((120, 160), bool)
+    truth[60:] = True
+    return image, truth
+
+
+def test_augmented_views_keep_the_bottom_edge_and_the_labels_aligned() -> None:
+    image, truth = _scene(0)
+    prepared = prepare(image, truth)
+    rng = np.random.default_rng(0)
+    for _ in range(10):
+        bgr, floor = augment(prepared, rng)
+        assert bgr.shape == (INPUT_HEIGHT_PX, INPUT_WIDTH_PX, 3)
+        assert floor.shape == (INPUT_HEIGHT_PX, INPUT_WIDTH_PX)
+        assert floor[-1].all()  # the crop keeps the robot's own floor
+        assert set(np.unique(floor)) <= {0, 1}
+
+
+def test_the_exported_onnx_model_gives_what_torch_gives(tmp_path: Path) -> None:
+    images = [prepare(*_scene(seed)) for seed in range(4)]
+    model = train(images, ZONE, epochs=1)
+    path = tmp_path / "net.onnx"
+    export_onnx(model, path)
+    image, _ = _scene(7)
+    expected = predict_probability(model, image, ZONE)
+    blob = network_input(image, input_zone_mask(ZONE))
+    zone_out = np.zeros(expected.shape, bool)
+    zone_out[-8:, 30:50] = True
+    output = FloorNet(path).run(blob, zone_out)
+    assert output.probability.shape == expected.shape
+    assert np.abs(output.probability - expected).max() < 1e-4
+    assert output.zone_floor_probability == pytest.approx(float(expected[zone_out].mean()))
