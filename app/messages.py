@@ -38,7 +38,12 @@ class FrameMsg:
 
 @dataclass(frozen=True)
 class FloorMsg:
-    """Perception's result for one frame (the image is kept for overlays)."""
+    """Perception's result for one frame (the image is kept for overlays).
+
+    ``zone_floor_confidence`` (0..1) is how sure the segmenter is that the safe zone in
+    front of the robot is floor (`app.perception.pipeline.FloorResult`); below
+    ``perception.zone_min_floor_confidence`` the way ahead counts as blocked.
+    """
 
     seq: int
     capture_s: float
@@ -47,6 +52,7 @@ class FloorMsg:
     floor_mask: NDArray[np.bool_] = field(repr=False)
     method: str
     timings_ms: dict[str, float]
+    zone_floor_confidence: float
 
     def age_s(self, now_s: float | None = None) -> float:
         return (time.monotonic() if now_s is None else now_s) - self.capture_s

@@ -12,8 +12,9 @@ the newest message, so a slow one skips frames instead of queueing them. Percept
 mapping run in their own single-thread executors (OpenCV, numpy and numba release the
 GIL; each owns its non-thread-safe object). The drive stage evaluates the mux every
 ``drive.control_period_ms`` and at once on every new command, applies the host's stop
-layers (stale perception or map, camera gone, minimum clearance ahead, latched e-stop)
-and sends wheel PWM to the Uno; the firmware's deadman is the last layer.
+layers (stale perception or map, camera gone, a safe zone that is not floor, minimum
+clearance ahead, latched e-stop) and sends wheel PWM to the Uno; the firmware's deadman
+is the last layer.
 
 Whatever ends the run (duration, SIGTERM/SIGINT, `Runtime.request_shutdown`, a stage
 crashing) ends with the motors commanded to zero and the port closed.
@@ -163,7 +164,22 @@ class Counters:
     send_errors: int = 0
     watchdog_stops: int = 0
     clearance_stops: int = 0
+    premise_stops: int = 0
+    """Times the safe zone ahead stopped being floor while driving (rising edges)."""
     faults: int = 0
+
+
+@dataclass(frozen=True)
+class ProtectiveStop:
+    """A transient stop layer holding the robot back now (it clears by itself).
+
+    ``cause``: "watchdog" (stale perception or map: motors zero), "not_floor" (the safe
+    zone is not floor: no forward motion, autonomy turns to look elsewhere) or
+    "clearance" (too little free floor ahead: no forward motion). ``reason`` says it in
+    a sentence for people."""
+
+    cause: str
+    reason: str
 
 
 def clearance_ahead_m(
@@ -294,6 +310,9 @@ class Runtime:
         self._last_pwm: tuple[int, int] | None = None
         self._stale_active = False
         self._clearance_active = False
+        self._premise_active = False
+        self.protective_stop: ProtectiveStop | None = None
+        """The stop layer the drive stage applied last (None: none holds the robot)."""
         self._loop: asyncio.AbstractEventLoop | None = None
         self._perception_config_changed = False
         self._services: list[Service] = []
@@ -665,6 +684,7 @@ class Runtime:
                     result.floor_mask,
                     result.method,
                     result.timings_ms,
+                    result.zone_floor_confidence,
                 )
             )
 
@@ -774,7 +794,11 @@ class Runtime:
                 continue
             start = self.clock()
             decision = self.steering.decide(
-                msg.window_cells, msg.window_grid, self.odometry.pose, msg.path_xy
+                msg.window_cells,
+                msg.window_grid,
+                self.odometry.pose,
+                msg.path_xy,
+                blocked_ahead=self._zone_not_floor(start) is not None,
             )
             self.stages.add("steering", self.clock() - start)
             self.steering_reasons[decision.reason] = (
@@ -910,8 +934,20 @@ class Runtime:
                 )
             )
 
+    def _zone_not_floor(self, now: float) -> FloorMsg | None:
+        """The newest floor result if it is fresh and says the safe zone is not floor
+        (``zone_floor_confidence`` below ``perception.zone_min_floor_confidence``)."""
+        floor = self.floors.peek()
+        if floor is None or floor.age_s(now) > self.config.safety.perception_max_age_s:
+            return None
+        if floor.zone_floor_confidence >= self.config.perception.zone_min_floor_confidence:
+            return None
+        return floor
+
     def _gate(self, out: MuxOutput, now: float) -> MuxOutput:
-        """The host's stop layers on top of the mux."""
+        """The host's stop layers on top of the mux; `protective_stop` says which one
+        holds the robot back."""
+        self.protective_stop = None
         safety = self.config.safety
         if out.source == "autonomy" or (self._autonomous and out.source == "timeout"):
             # Judged on capture times, so it trips before the mux's own timeout on the
@@ -932,8 +968,15 @@ class Runtime:
                     log.warning(
                         "stale perception or map: motors zero", extra={"event": "watchdog_stop"}
                     )
+                self.protective_stop = ProtectiveStop(
+                    "watchdog",
+                    "no recent perception or map"
+                    + (f" ({self._fault_reason})" if self._fault_reason else "")
+                    + ": motors zero",
+                )
                 return MuxOutput(Twist(), "watchdog", now, now)
             self._stale_active = False
+        out = self._premise_gate(out, now)
         if out.twist.v_m_s > 0:
             map_msg = self.maps.peek()
             fresh = map_msg is not None and map_msg.age_s(now) <= safety.perception_max_age_s
@@ -947,11 +990,55 @@ class Runtime:
                         safety.min_clearance_m,
                         extra={"event": "clearance_stop"},
                     )
+                self.protective_stop = ProtectiveStop(
+                    "clearance",
+                    f"clearance {map_msg.clearance_ahead_m:.2f} m ahead < "
+                    f"{safety.min_clearance_m:.2f} m: no forward motion",
+                )
                 return MuxOutput(
                     Twist(0.0, out.twist.omega_rad_s), out.source, out.stamp_s, out.origin_s
                 )
             self._clearance_active = False
         return out
+
+    def _premise_gate(self, out: MuxOutput, now: float) -> MuxOutput:
+        """The thesis's premise: the safe zone right ahead is floor. When perception says
+        it is not, the way ahead is blocked: no forward motion (turning stays allowed;
+        steering turns to look elsewhere). Recovers by itself when the zone is floor
+        again. It holds autonomy back, or any command that would move forward."""
+        floor = self._zone_not_floor(now)
+        if floor is None or not (out.source == "autonomy" or out.twist.v_m_s > 0):
+            if self._premise_active:
+                log.debug(
+                    "premise stop over: %s",
+                    "nothing drives forward" if floor is not None else "the safe zone is floor",
+                    extra={"event": "premise_clear"},
+                )
+            self._premise_active = False
+            return out
+        minimum = self.config.perception.zone_min_floor_confidence
+        confidence = floor.zone_floor_confidence
+        if not self._premise_active:
+            self._premise_active = True
+            self.counters.premise_stops += 1
+            log.info(
+                "safe zone is not floor (confidence %.2f < %.2f): no forward motion",
+                confidence,
+                minimum,
+                extra={
+                    "event": "premise_stop",
+                    "zone_floor_confidence": round(confidence, 3),
+                    "source": out.source,
+                },
+            )
+        then = "turning to look elsewhere" if out.source == "autonomy" else "no forward motion"
+        self.protective_stop = ProtectiveStop(
+            "not_floor",
+            f"safe zone is not floor (confidence {confidence:.2f} < {minimum:.2f}): {then}",
+        )
+        if out.twist.v_m_s <= 0:
+            return out
+        return MuxOutput(Twist(0.0, out.twist.omega_rad_s), out.source, out.stamp_s, out.origin_s)
 
     # -- state ----------------------------------------------------------------------------
 
@@ -995,6 +1082,7 @@ class Runtime:
         """A JSON-ready snapshot for the API and the dashboard."""
         now = self.clock()
         floor, map_msg, drive = self.floors.peek(), self.maps.peek(), self.drives.peek()
+        stop = self.protective_stop
         link = self.link
         pose = self.odometry.pose
         frontier = self.frontier
@@ -1054,6 +1142,10 @@ class Runtime:
                 "clusters": len(frontier.clusters),
             },
             "clearance_ahead_m": round(map_msg.clearance_ahead_m, 3) if map_msg else None,
+            "zone_floor_confidence": round(floor.zone_floor_confidence, 3) if floor else None,
+            "zone_min_floor_confidence": self.config.perception.zone_min_floor_confidence,
+            "stop_cause": stop.cause if stop is not None else None,
+            "stop_reason": stop.reason if stop is not None else None,
             "counters": dict(self.counters.__dict__),
             "estops": self.mux.estops,
             "transitions": [
@@ -1099,6 +1191,7 @@ class Runtime:
             "estops": self.mux.estops,
             "watchdog_stops": self.counters.watchdog_stops,
             "clearance_stops": self.counters.clearance_stops,
+            "premise_stops": self.counters.premise_stops,
             "steering_decisions": dict(self.steering_reasons),
             "goals_given_up": len(self.given_up_goals),
             "faults": self.counters.faults,

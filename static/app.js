@@ -146,6 +146,11 @@ function renderStatus(s) {
     banner.hidden = false;
     banner.className = "banner";
     banner.textContent = "Fault, motors held at zero: " + s.fault;
+  } else if (s.stop_cause === "not_floor" && s.stop_reason) {
+    // A protective stop: it clears by itself, so a warning rather than an alarm.
+    banner.hidden = false;
+    banner.className = "banner";
+    banner.textContent = "Stopped: " + s.stop_reason;
   } else {
     banner.hidden = true;
   }
@@ -162,6 +167,12 @@ function renderStatus(s) {
     s.frame_age_ms !== null && s.frame_age_ms < 300 ? "ok" : "warn");
   setCell("h-clearance", s.clearance_ahead_m === null ? "–" : fmt(s.clearance_ahead_m, 2) + " m",
     s.clearance_ahead_m !== null && s.clearance_ahead_m < 0.2 ? "warn" : "");
+  const zoneMin = typeof s.zone_min_floor_confidence === "number" ? s.zone_min_floor_confidence : 0.5;
+  const zoneLow = typeof s.zone_floor_confidence === "number" && s.zone_floor_confidence < zoneMin;
+  setCell("h-zone", typeof s.zone_floor_confidence === "number"
+    ? fmt(s.zone_floor_confidence * 100) + " %" + (zoneLow ? " · not floor (below " + fmt(zoneMin * 100) + " %)" : "")
+    : "–", zoneLow ? "bad" : (typeof s.zone_floor_confidence === "number" ? "ok" : ""));
+  setCell("h-stop", s.stop_reason || "none", s.stop_reason ? "warn" : "");
   const c = s.command;
   setCell("h-command", c ? `${fmt(c.v_m_s, 2)} m/s · ${fmt(c.omega_rad_s, 2)} rad/s · PWM ${c.left_pwm}/${c.right_pwm} · ${c.source}` : "none yet");
   setCell("h-calibration", s.calibration ? "reprojection RMS " + fmt(s.calibration.reprojection_rms_px, 2) + " px"

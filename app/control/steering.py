@@ -15,6 +15,9 @@
    where the robot's body would touch), from ``slow_down_m`` above the minimum clearance
    down to zero at it. An open window whose range is already within the clearance leads
    nowhere: the robot turns towards the goal instead, to look.
+5. Blocked ahead (the runtime says the safe zone in front is not floor): no forward
+   motion, and a turn in place at ``turn_speed_rad_s`` towards the side with more free
+   range, kept while the way ahead stays blocked, so the robot looks elsewhere.
 
 `Steering` keeps only the smoothing state; `polar_free_range` and `choose_heading` are
 pure functions on arrays.
@@ -177,7 +180,8 @@ class SteeringDecision:
 
     ``heading_rad`` and ``desired_rad`` are in the robot frame; ``reason`` is one of
     "goal", "window" (the desired heading was closed: steering round), "blocked" (no
-    open window: turning in place), "scan" (no frontier goal: looking around).
+    open window: turning in place), "scan" (no frontier goal: looking around),
+    "not_floor" (the safe zone ahead is not floor: turning in place to look elsewhere).
     """
 
     twist: Twist
@@ -205,9 +209,13 @@ class Steering:
         self.body_radius_m = robot_radius_m + body_margin_m
         self._previous = Twist()
         self._scan_sign = 1.0
+        self._blocked_sign: float | None = None
+        """The turn direction chosen when the way ahead became blocked (kept until it
+        clears, so the robot does not dither between sides)."""
 
     def reset(self) -> None:
         self._previous = Twist()
+        self._blocked_sign = None
 
     def decide(
         self,
@@ -215,7 +223,11 @@ class Steering:
         grid: GroundGrid,
         T_world_robot: Pose2D,
         path_xy: NDArray[np.float64] | None,
+        *,
+        blocked_ahead: bool = False,
     ) -> SteeringDecision:
+        """The next command. ``blocked_ahead``: something the map does not show yet
+        blocks the way (the safe zone is not floor): turn in place, see step 5."""
         cfg = self.config
         polar = polar_free_range(
             cells,
@@ -224,6 +236,19 @@ class Steering:
             body_radius_m=self.body_radius_m,
             max_range_m=min(cfg.local_window_m / 2, 3.0),
         )
+        if blocked_ahead:
+            if self._blocked_sign is None:
+                self._blocked_sign = self._freer_side(polar)
+            sign = self._blocked_sign
+            return self._finish(
+                Twist(0.0, sign * cfg.turn_speed_rad_s),
+                sign * math.pi / 2,
+                sign * math.pi / 2,
+                polar,
+                "not_floor",
+                0.0,
+            )
+        self._blocked_sign = None
         windows = open_windows(polar, cfg.min_advance_m)
         point = (
             None
@@ -267,6 +292,15 @@ class Steering:
         room = max(0.0, min(1.0, (range_ahead - stop_at) / cfg.slow_down_m))
         v = cfg.cruise_speed_m_s * room * math.cos(heading) ** 2
         return self._finish(Twist(v, omega), heading, desired, polar, reason, range_ahead)
+
+    def _freer_side(self, polar: PolarRanges) -> float:
+        """+1 (turn left) if the directions on the left hold more free range than those
+        on the right, -1 if fewer; on a tie, the way the robot last looked."""
+        left = float(polar.ranges_m[(polar.angles_rad > 0) & (polar.angles_rad < math.pi)].sum())
+        right = float(polar.ranges_m[(polar.angles_rad < 0) & (polar.angles_rad > -math.pi)].sum())
+        if math.isclose(left, right, rel_tol=1e-9, abs_tol=1e-9):
+            return self._scan_sign
+        return 1.0 if left > right else -1.0
 
     def _finish(
         self,

@@ -146,6 +146,12 @@ class RuntimeCollector(Collector):
             value=now - floor.capture_s if floor is not None else float("nan"),
         )
         yield GaugeMetricFamily(
+            "floornav_zone_floor_confidence",
+            "How sure perception is that the safe zone ahead is floor, 0..1, newest frame "
+            "(NaN before the first)",
+            value=floor.zone_floor_confidence if floor is not None else float("nan"),
+        )
+        yield GaugeMetricFamily(
             "floornav_uptime_seconds", "Seconds since the run started", value=service.elapsed_s()
         )
 
@@ -167,6 +173,7 @@ class RuntimeCollector(Collector):
         for name, value, documentation in (
             ("watchdog_stops", counters.watchdog_stops, "Stops for stale perception or map"),
             ("clearance_stops", counters.clearance_stops, "Forward motion refused for clearance"),
+            ("premise_stops", counters.premise_stops, "Stops because the safe zone is not floor"),
             ("estops", service.mux.estops, "E-stops latched"),
             ("faults", counters.faults, "Times the devices went faulty"),
             ("commands_sent", counters.commands_sent, "Drive commands sent to the Uno"),

@@ -142,7 +142,10 @@ def build_api_router(ctx: WebContext) -> APIRouter:
 
     @router.get("/api/status", dependencies=read, tags=["status"], responses=ERROR_RESPONSES)
     async def get_status() -> dict[str, Any]:
-        """The daemon's snapshot: state, fps, frame age, stage timings, pose, devices."""
+        """The daemon's snapshot: state, fps, frame age, stage timings, pose, devices,
+        ``zone_floor_confidence`` (how sure perception is that the safe zone ahead is
+        floor; null before the first frame) and the protective stop holding the robot
+        back, if any (``stop_cause``, ``stop_reason``)."""
         result: dict[str, Any] = json_safe(service.status())
         return result
 

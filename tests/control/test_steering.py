@@ -155,3 +155,29 @@ def test_boxed_in_turns_towards_the_goal_without_moving() -> None:
     decision = steering().decide(cells, GRID, Pose2D(), path_to(0.0, -1.0))
     assert decision.reason == "blocked"
     assert decision.twist.v_m_s == 0.0 and decision.twist.omega_rad_s < 0
+
+
+def test_blocked_ahead_turns_in_place_towards_the_freer_side_and_keeps_it() -> None:
+    """The safe zone is not floor: no forward motion although the map shows free floor
+    ahead, and a full-speed turn towards the side with more free range, kept while the
+    way ahead stays blocked (no dithering), chosen afresh once it cleared."""
+    turn = SteeringConfig().turn_speed_rad_s
+    right_walled = free_map()
+    _, y = GRID.cell_centers()
+    right_walled[y < -0.4] = OCCUPIED  # the right side is closed: more room on the left
+    left_walled = np.flip(right_walled, axis=1).copy()  # y decreases along columns
+    robot = steering()
+    decision = robot.decide(right_walled, GRID, Pose2D(), path_to(2.0, 0.0), blocked_ahead=True)
+    assert decision.reason == "not_floor"
+    assert decision.twist.v_m_s == 0.0
+    assert decision.twist.omega_rad_s == pytest.approx(turn)  # left
+    assert decision.range_ahead_m == 0.0
+    # Still blocked, now the left looks freer: keep turning the way it started.
+    again = robot.decide(left_walled, GRID, Pose2D(), path_to(2.0, 0.0), blocked_ahead=True)
+    assert again.twist == decision.twist
+    # Cleared: steering drives to the goal again; blocked anew, it picks the side afresh.
+    clear = robot.decide(free_map(), GRID, Pose2D(), path_to(2.0, 0.0))
+    assert clear.reason == "goal" and clear.twist.v_m_s > 0
+    fresh = robot.decide(left_walled, GRID, Pose2D(), path_to(2.0, 0.0), blocked_ahead=True)
+    assert fresh.twist.v_m_s == 0.0
+    assert fresh.twist.omega_rad_s == pytest.approx(-turn)  # right

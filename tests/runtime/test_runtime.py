@@ -6,6 +6,8 @@ import asyncio
 import logging
 import threading
 import time
+from collections.abc import Callable
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -132,6 +134,103 @@ async def test_stale_perception_stops_the_robot() -> None:
         assert time.monotonic() - stalled < 0.8
         assert rt.counters.watchdog_stops >= 1
         made[0].stall.clear()
+
+
+class ZoneConfidenceSegmenter:
+    """Segments normally but reports ``confidence`` as its zone floor confidence (as if
+    an obstacle stood in the safe zone while the mask still said floor)."""
+
+    def __init__(self, config: PerceptionConfig) -> None:
+        self.inner = FloorSegmenter(config)
+        self.confidence = 1.0
+
+    def segment(self, image: np.ndarray) -> FloorResult:
+        return replace(self.inner.segment(image), zone_floor_confidence=self.confidence)
+
+
+async def test_a_safe_zone_that_is_not_floor_stops_forward_motion_until_it_is_again() -> None:
+    made: list[ZoneConfidenceSegmenter] = []
+
+    def factory(config: PerceptionConfig) -> ZoneConfidenceSegmenter:
+        made.append(ZoneConfidenceSegmenter(config))
+        return made[-1]
+
+    # No clearance stop: what holds the robot back here is the premise alone.
+    config = sim_config(safety={"min_clearance_m": 0.0})
+    async with running(config, segmenter_factory=factory) as (rt, _):
+        sim = rt.devices.sim
+        assert sim is not None and sim.uno is not None
+        uno = sim.uno
+        assert rt.status()["zone_floor_confidence"] == 1.0
+        await rt.start()
+        await wait_for(lambda: uno.pwm != (0, 0), 5.0, "the motors to turn")
+        assert rt.counters.premise_stops == 0
+
+        made[0].confidence = 0.1
+        await wait_for(lambda: rt.counters.premise_stops == 1, 1.0, "the premise stop")
+        status = rt.status()
+        assert status["zone_floor_confidence"] == 0.1
+        assert status["stop_cause"] == "not_floor"
+        assert status["stop_reason"] == (
+            "safe zone is not floor (confidence 0.10 < 0.50): turning to look elsewhere"
+        )
+
+        # Autonomy turns in place to look elsewhere: no forward motion, but turning.
+        def turning_in_place() -> bool:
+            decision, drive = rt.decisions.peek(), rt.drives.peek()
+            return (
+                decision is not None
+                and decision.reason == "not_floor"
+                and drive is not None
+                and drive.source == "autonomy"
+                and drive.twist.v_m_s == 0.0
+                and abs(drive.twist.omega_rad_s) > 0.3
+            )
+
+        await wait_for(turning_in_place, 2.0, "autonomy to turn in place")
+        start_xy = (sim.robot.pose.x_m, sim.robot.pose.y_m)
+        start_theta = sim.robot.pose.theta_rad
+        for _ in range(10):
+            await asyncio.sleep(0.05)
+            drive = rt.drives.peek()
+            assert drive is not None and drive.twist.v_m_s <= 0.0
+            assert uno.pwm[0] * uno.pwm[1] <= 0, "wheels turning the opposite ways"
+        assert moved_m(rt.devices, start_xy) < 0.02
+        assert abs(sim.robot.pose.theta_rad - start_theta) > 0.05
+
+        # The gate refuses forward motion to anyone: teleop forward stands still.
+        async def drive_forward_until(predicate: Callable[[], bool], what: str) -> None:
+            deadline = time.monotonic() + 2.0
+            while not predicate():
+                assert time.monotonic() < deadline, f"timed out waiting for {what}"
+                rt.teleop("t", 0.2, 0.0)
+                await asyncio.sleep(0.05)
+
+        await drive_forward_until(
+            lambda: (drive := rt.drives.peek()) is not None and drive.source == "teleop",
+            "teleop to drive",
+        )
+        for _ in range(5):
+            rt.teleop("t", 0.2, 0.0)
+            await asyncio.sleep(0.05)
+            assert uno.pwm == (0, 0)
+        assert rt.status()["stop_reason"].endswith("< 0.50): no forward motion")
+        assert rt.counters.premise_stops == 1, "one stop, counted once"
+
+        # The zone is floor again: the stop clears by itself and forward motion resumes.
+        made[0].confidence = 0.9
+        await drive_forward_until(lambda: uno.pwm[0] > 0 and uno.pwm[1] > 0, "forward motion")
+        status = rt.status()
+        assert status["zone_floor_confidence"] == 0.9
+        assert status["stop_cause"] is None and status["stop_reason"] is None
+        rt.release_teleop("t")
+        await wait_for(
+            lambda: (d := rt.decisions.peek()) is not None and d.reason != "not_floor",
+            2.0,
+            "steering to stop turning away",
+        )
+        assert rt.counters.premise_stops == 1
+        assert rt.report()["premise_stops"] == 1
 
 
 class HangingSegmenter(FloorSegmenter):

@@ -36,7 +36,9 @@ class FakeLink:
     stats: LinkStats = field(default_factory=LinkStats)
 
 
-def floor_msg(seq: int, *, width: int = 160, height: int = 120) -> FloorMsg:
+def floor_msg(
+    seq: int, *, width: int = 160, height: int = 120, zone_floor_confidence: float = 0.93
+) -> FloorMsg:
     """A synthetic perception result captured just now (floor = bottom part)."""
     image, truth = room_scene(width, height, seed=seq)
     return FloorMsg(
@@ -47,6 +49,7 @@ def floor_msg(seq: int, *, width: int = 160, height: int = 120) -> FloorMsg:
         floor_mask=truth,
         method="floornav",
         timings_ms={"total": 20.0},
+        zone_floor_confidence=zone_floor_confidence,
     )
 
 
@@ -81,6 +84,8 @@ class FakeService:
         self.odometry = WheelOdometry(self.config.drive)
         self.started_s = time.monotonic()
         self.estopped = False
+        self.stop_cause: str | None = None
+        self.stop_reason: str | None = None
 
     # -- feeding it --------------------------------------------------------------------
 
@@ -108,6 +113,10 @@ class FakeService:
             "frame_age_ms": None if floor is None else (time.monotonic() - floor.capture_s) * 1e3,
             "stage_ms": {"perception": 21.0},
             "clearance_ahead_m": float("nan"),  # NaN must reach clients as null
+            "zone_floor_confidence": None if floor is None else floor.zone_floor_confidence,
+            "zone_min_floor_confidence": self.config.perception.zone_min_floor_confidence,
+            "stop_cause": self.stop_cause,
+            "stop_reason": self.stop_reason,
             "counters": dict(self.counters.__dict__),
             "estops": self.mux.estops,
         }

@@ -107,7 +107,7 @@ async def test_a_slow_video_client_does_not_delay_a_fast_one(live_server: LiveSe
             template = images[seq % len(images)]
             live_server.publish(
                 FloorMsg(seq, time.monotonic(), time.monotonic(), template.image,
-                         template.floor_mask, "floornav", {})
+                         template.floor_mask, "floornav", {}, 1.0)
             )  # fmt: skip
             time.sleep(1 / PUBLISH_HZ)
 

@@ -35,13 +35,14 @@ def test_metrics_report_the_service(client: TestClient, service: FakeService) ->
     service.stages.add("mapping", 0.01)
     service.add_latency(0.08)
     service.counters.watchdog_stops = 2
+    service.counters.premise_stops = 3
     service.counters.frames_perceived = 40
     service.estop("test")
     assert service.link is not None
     service.link.stats.crc_errors = 3
     service.link.stats.timeouts = 4
     service.link.stats.reconnects = 5
-    service.floors.publish(floor_msg(1))
+    service.floors.publish(floor_msg(1, zone_floor_confidence=0.25))
 
     metrics = scrape(client)
     perception = (("stage", "perception"),)
@@ -56,6 +57,8 @@ def test_metrics_report_the_service(client: TestClient, service: FakeService) ->
     assert metrics["floornav_serial_errors_total"][(("kind", "timeout"),)] == 4
     assert metrics["floornav_serial_reconnects_total"][()] == 5
     assert metrics["floornav_watchdog_stops_total"][()] == 2
+    assert metrics["floornav_premise_stops_total"][()] == 3
+    assert metrics["floornav_zone_floor_confidence"][()] == 0.25
     assert metrics["floornav_estops_total"][()] == 1
     assert 0 <= metrics["floornav_frame_age_seconds"][()] < 5
     assert metrics["floornav_fps"][()] > 0

@@ -25,7 +25,7 @@ from ..mapping.test_calibration import (
     render_floor_board,
 )
 from .conftest import AUTH, TOKEN
-from .fakes import FakeService
+from .fakes import FakeService, floor_msg
 
 JSON = {"content-type": "application/json"}
 
@@ -70,7 +70,22 @@ def test_status_is_open_and_strict_json(client: TestClient) -> None:
     assert status["state"] == "idle"
     assert status["fps"] == 12.5
     assert status["clearance_ahead_m"] is None  # the fake reports NaN
+    assert status["zone_floor_confidence"] is None  # no frame yet
+    assert status["stop_cause"] is None and status["stop_reason"] is None
     assert "NaN" not in response.text
+
+
+def test_status_reports_the_safe_zone_confidence_and_the_stop(
+    client: TestClient, service: FakeService
+) -> None:
+    service.floors.publish(floor_msg(1, zone_floor_confidence=0.31))
+    service.stop_cause = "not_floor"
+    service.stop_reason = "safe zone is not floor (confidence 0.31 < 0.50): turning"
+    status = client.get("/api/status").json()
+    assert status["zone_floor_confidence"] == 0.31
+    assert status["zone_min_floor_confidence"] == 0.5
+    assert status["stop_cause"] == "not_floor"
+    assert "not floor" in status["stop_reason"]
 
 
 def test_reads_need_the_token_when_configured(service: FakeService) -> None:
