@@ -83,17 +83,25 @@ class EvalReport:
 ProgressFn = Callable[[int, int, str], None]
 
 
-def stderr_progress(done: int, total: int, label: str) -> None:
-    """A one-line progress bar on stderr (a plain line every 25 items when not a TTY)."""
-    if sys.stderr.isatty():
-        width = 30
-        filled = width * done // max(total, 1)
-        bar = "#" * filled + "-" * (width - filled)
-        end = "\n" if done == total else ""
-        sys.stderr.write(f"\r[{bar}] {done}/{total} {label[:40]:<40}{end}")
-        sys.stderr.flush()
-    elif done == total or done % 25 == 0:
-        sys.stderr.write(f"eval: {done}/{total} images\n")
+def progress_printer(command: str, unit: str, every: int) -> ProgressFn:
+    """A one-line progress bar on stderr; when not a TTY, a plain line every ``every``
+    items (``eval: 25/121 images``)."""
+
+    def show(done: int, total: int, label: str) -> None:
+        if sys.stderr.isatty():
+            width = 30
+            filled = width * done // max(total, 1)
+            bar = "#" * filled + "-" * (width - filled)
+            end = "\n" if done == total else ""
+            sys.stderr.write(f"\r[{bar}] {done}/{total} {label[:40]:<40}{end}")
+            sys.stderr.flush()
+        elif done == total or done % every == 0:
+            sys.stderr.write(f"{command}: {done}/{total} {unit}\n")
+
+    return show
+
+
+stderr_progress = progress_printer("eval", "images", 25)
 
 
 def evaluate(

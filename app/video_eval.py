@@ -23,7 +23,6 @@ used are skipped with the reason; the run goes on.
 
 from __future__ import annotations
 
-import sys
 import time
 from collections.abc import Callable, Iterable, Iterator, Sequence
 from pathlib import Path
@@ -33,6 +32,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.config import PerceptionConfig
+from app.evaluation import progress_printer
 from app.perception.overlay import draw_overlay
 from app.perception.pipeline import METHODS, FloorSegmenter
 
@@ -278,17 +278,7 @@ def evaluate_videos(
     }
 
 
-def stderr_progress(done: int, total: int, label: str) -> None:
-    """A one-line progress bar on stderr (a plain line every 200 frames when not a TTY)."""
-    if sys.stderr.isatty():
-        width = 30
-        filled = width * done // max(total, 1)
-        bar = "#" * filled + "-" * (width - filled)
-        end = "\n" if done == total else ""
-        sys.stderr.write(f"\r[{bar}] {done}/{total} {label[:40]:<40}{end}")
-        sys.stderr.flush()
-    elif done == total or done % 200 == 0:
-        sys.stderr.write(f"eval-video: {done}/{total} frames\n")
+stderr_progress = progress_printer("eval-video", "frames", 200)
 
 
 def format_video_table(summary: dict[str, object]) -> str:
