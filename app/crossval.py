@@ -26,7 +26,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.config import PerceptionConfig
-from app.evaluation import list_labelled_images
+from app.evaluation import list_labelled_images, score_table_lines
 from app.imageio import read_bgr, read_mask
 from app.perception.image_checks import ImageError
 from app.perception.metrics import FloorScores, floor_scores, mean_scores
@@ -275,19 +275,10 @@ def format_cv_table(summary: dict[str, object]) -> str:
         f"cross-validation: {cv['scheme']} ({cv['folds']} folds, {cv['scenes']} scenes, "
         f"{cv['images']} images); every score is on scenes the method was not fitted on"
     )
-    header = f"{'method':<18}{'iou':>8}{'recall':>9}{'precision':>11}{'near_FF':>9}{'images':>8}"
 
     def rows(title: str, table: dict[str, dict[str, float | int]]) -> None:
         lines.append(f"\n== {title}")
-        lines.append(header)
-        for method, s in table.items():
-            if not s.get("images"):
-                lines.append(f"{method:<18}{'-':>8}{'-':>9}{'-':>11}{'-':>9}{0:>8d}")
-                continue
-            lines.append(
-                f"{method:<18}{s['iou']:>8.3f}{s['floor_recall']:>9.3f}"
-                f"{s['floor_precision']:>11.3f}{s['near_false_floor']:>9.3f}{s['images']:>8d}"
-            )
+        lines.extend(score_table_lines(table))
 
     datasets = summary["datasets"]
     assert isinstance(datasets, dict)

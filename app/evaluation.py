@@ -139,18 +139,26 @@ def evaluate(
     return report
 
 
+def score_table_lines(table: dict[str, dict[str, float | int]]) -> list[str]:
+    """A header and one row per method of `mean_scores` dicts (``-`` for no images)."""
+    lines = [f"{'method':<18}{'iou':>8}{'recall':>9}{'precision':>11}{'near_FF':>9}{'images':>8}"]
+    for method, s in table.items():
+        if not s.get("images"):
+            lines.append(f"{method:<18}{'-':>8}{'-':>9}{'-':>11}{'-':>9}{0:>8d}")
+            continue
+        lines.append(
+            f"{method:<18}{s['iou']:>8.3f}{s['floor_recall']:>9.3f}"
+            f"{s['floor_precision']:>11.3f}{s['near_false_floor']:>9.3f}{s['images']:>8d}"
+        )
+    return lines
+
+
 def format_table(summary: dict[str, object]) -> str:
     """Human-readable tables: one per dataset, one row per method, then all datasets."""
     lines: list[str] = []
-    header = f"{'method':<18}{'iou':>8}{'recall':>9}{'precision':>11}{'near_FF':>9}{'images':>8}"
 
     def rows(table: dict[str, dict[str, float | int]]) -> None:
-        lines.append(header)
-        for method, s in table.items():
-            lines.append(
-                f"{method:<18}{s['iou']:>8.3f}{s['floor_recall']:>9.3f}"
-                f"{s['floor_precision']:>11.3f}{s['near_false_floor']:>9.3f}{s['images']:>8d}"
-            )
+        lines.extend(score_table_lines(table))
 
     datasets = summary["datasets"]
     assert isinstance(datasets, dict)
