@@ -39,12 +39,18 @@ RUN pip install --no-cache-dir .
 COPY config.toml ./
 COPY static ./static
 
+# numba's kernels compiled into the image's cache (NUMBA_CACHE_DIR), so the daemon loads
+# them at start instead of compiling for seconds; handed to the user who must read them
+# and, on a host with another CPU model (numba keys the cache by it), add its own.
+RUN floornav warmup --config /opt/floornav/config.toml \
+    && chown -R floornav:floornav /var/cache/floornav
+
 USER floornav
 
 EXPOSE 8080
 
-# /api/status answers whenever the event loop runs; numba compiles on the first frames,
-# hence the long start period.
+# /api/status answers whenever the event loop runs; the daemon serves once its numba
+# kernels are ready (seconds to recompile on another CPU), hence the long start period.
 HEALTHCHECK --interval=15s --timeout=5s --start-period=90s --retries=3 \
     CMD ["python", "-c", "import os, urllib.request; urllib.request.urlopen('http://127.0.0.1:%s/api/status' % os.environ.get('FLOORNAV_WEB__PORT', '8080'), timeout=4)"]
 

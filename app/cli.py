@@ -43,7 +43,18 @@ def cmd_run(args: argparse.Namespace) -> int:
         config_source=str(args.config),
         duration_s=args.duration_s,
         report_path=args.report,
+        map_path=args.map,
     )
+
+
+def cmd_warmup(args: argparse.Namespace) -> int:
+    """Compile (or load from numba's cache) every kernel ``floornav run`` will call, so
+    that even its first run starts from the cache."""
+    from app.jit import compile_kernels
+
+    report = compile_kernels(_load(args.config))
+    print(report.banner_line().strip(), flush=True)
+    return 0
 
 
 def _check_segment_args(args: argparse.Namespace) -> None:
@@ -233,14 +244,20 @@ def cmd_sim_eval(args: argparse.Namespace) -> int:
 def cmd_uno_check(args: argparse.Namespace) -> int:
     import asyncio
 
+    from app.devices import open_uno
     from app.hardware.uno_check import run_uno_check
 
     config = _load(args.config)
-    report = asyncio.run(
-        run_uno_check(
-            config.serial, pings=args.pings, drive_pwm=args.drive_pwm, drive_s=args.drive_s
+    with open_uno(config.serial) as uno:
+        report = asyncio.run(
+            run_uno_check(
+                uno.port,
+                config.serial,
+                pings=args.pings,
+                drive_pwm=args.drive_pwm,
+                drive_s=args.drive_s,
+            )
         )
-    )
     if args.json:
         print_json(report)
     else:
@@ -249,33 +266,57 @@ def cmd_uno_check(args: argparse.Namespace) -> int:
     return 0 if report.get("connected") else 1
 
 
+BENCH_SECTIONS = ("perception", "grid", "render", "daemon")
+
+
 def cmd_bench(args: argparse.Namespace) -> int:
-    from app.benchmarks import restored_affinity
-    from app.benchmarks.grid import bench_grid_update, format_grid_bench
-    from app.benchmarks.perception import format_bench, run_bench
-    from app.benchmarks.sim import bench_render
+    from app.benchmarks import pin_to_one_cpu, restored_affinity
 
     config = _load(args.config)
     perception = config.perception.model_copy(
         update={"method": args.method or config.perception.method}
     )
+    sections = args.only or BENCH_SECTIONS
+    if args.frames < 1:
+        raise ValueError(f"--frames must be >= 1, got {args.frames}")
+    result: dict[str, object] = {"method": perception.method}
+    blocks: list[str] = []  # the text report, section by section
     with restored_affinity():
-        result = run_bench(perception, args.datasets, repeats=args.repeats)
-        grid = bench_grid_update(max(1, args.repeats))
-        result["grid_update"] = grid
-        render = bench_render(max(1, args.repeats // 2))
-        result["sim_render"] = render
+        result["pinned"] = pin_to_one_cpu()
+        # Lazy imports: a section loads only its own subsystem (perception alone needs
+        # neither the runtime nor the simulator).
+        if "perception" in sections:
+            from app.benchmarks.perception import format_bench, run_bench
+
+            result |= run_bench(perception, args.datasets, repeats=args.repeats)
+            blocks.append(format_bench(result))
+        if "grid" in sections:
+            from app.benchmarks.grid import bench_grid_update, format_grid_bench
+
+            grid = bench_grid_update(max(1, args.repeats))
+            result["grid_update"] = grid
+            blocks.append(format_grid_bench(grid))
+        if "render" in sections:
+            from app.benchmarks.sim import bench_render
+
+            render = bench_render(max(1, args.repeats // 2))
+            result["sim_render"] = render
+            blocks.append(
+                f"== simulator render 640x480 ({render['frames']} frames): median "
+                f"{render['median']:.2f} ms, min {render['min']:.2f}, max {render['max']:.2f}"
+                f" -> {render['fps']:.0f} fps"
+            )
+        if "daemon" in sections:
+            from app.benchmarks.frame_path import bench_frame_path, format_frame_path
+
+            daemon_config = config.model_copy(update={"perception": perception})
+            frame_path = bench_frame_path(daemon_config, args.frames)
+            result["daemon_frame_path"] = frame_path
+            blocks.append(format_frame_path(frame_path))
     if args.json:
         print_json(result)
     else:
-        print(format_bench(result))
-        print()
-        print(format_grid_bench(grid))
-        print(
-            f"\n== simulator render 640x480 ({render['frames']} frames): median "
-            f"{render['median']:.2f} ms, min {render['min']:.2f}, max {render['max']:.2f}"
-            f" -> {render['fps']:.0f} fps"
-        )
+        print("\n\n".join(blocks))
     return 0
 
 
@@ -298,8 +339,22 @@ def build_parser() -> argparse.ArgumentParser:
     p = sub.add_parser("run", help="run the daemon (the simulator with the shipped config)")
     p.add_argument("--duration-s", type=float, help="stop after this many seconds")
     p.add_argument("--report", type=Path, help="write a JSON run report here at exit")
+    p.add_argument(
+        "--map",
+        type=Path,
+        metavar="FILE",
+        help="continue the map saved in FILE (if it exists) and save it there at exit, "
+        "with a ROS map_server copy beside it (FILE.pgm, FILE.yaml)",
+    )
     add_config(p)
     p.set_defaults(func=cmd_run)
+
+    p = sub.add_parser(
+        "warmup",
+        help="compile the numba kernels `run` uses into numba's cache (scripts/setup does)",
+    )
+    add_config(p)
+    p.set_defaults(func=cmd_warmup)
 
     p = sub.add_parser(
         "segment", help="segment the floor in images; write floor masks and/or overlays"
@@ -395,6 +450,15 @@ def build_parser() -> argparse.ArgumentParser:
     p.add_argument("--method", help="the segmentation method to time (default: from config)")
     p.add_argument(
         "--datasets", type=Path, default=DEFAULT_DATASETS_DIR, help="the shared datasets folder"
+    )
+    p.add_argument(
+        "--frames", type=int, default=60, help="simulated frames for the daemon's per-frame path"
+    )
+    p.add_argument(
+        "--only",
+        action="append",
+        choices=BENCH_SECTIONS,
+        help="run just this section (repeatable; default: all)",
     )
     add_config(p)
     p.set_defaults(func=cmd_bench)

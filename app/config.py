@@ -148,11 +148,16 @@ class MappingConfig(StrictModel):
     """A cell is occupied above this log-odds (default: one sighting; raise it when
     perception leaves speckles of false obstacles)."""
     obstacle_band_m: Annotated[float, Field(gt=0.0, le=0.5)] = 0.03
-    evidence_half_life_s: Annotated[float, Field(gt=0.0, le=86400.0)] = 30.0
-    frontier_min_cells: Annotated[int, Field(ge=1, le=10000)] = 4
+    evidence_half_distance_m: Annotated[float, Field(gt=0.0, le=10000.0)] = 10.0
+    """Evidence halves per this much travel, never with time alone, so a standing robot
+    keeps its map (10 m: what the old 30 s half-life gave at the 0.35 m/s cruise)."""
+    evidence_turn_radius_m: Annotated[float, Field(ge=0.0, le=1.0)] = 0.10
+    """Turning counts as travel at this radius: half the wheel base, the distance each
+    wheel rolls in a spin turn (heading drift stales a map as much as distance does)."""
+    frontier_min_cells: Annotated[int, Field(ge=1, le=10000)] = 10
     frontier_size_penalty_m: Annotated[float, Field(ge=0.0, le=100.0)] = 0.0
     """Trades path length for larger frontiers (see ``app.mapping.frontiers``)."""
-    frontier_turn_penalty_m_per_rad: Annotated[float, Field(ge=0.0, le=10.0)] = 0.0
+    frontier_turn_penalty_m_per_rad: Annotated[float, Field(ge=0.0, le=10.0)] = 0.3
     """Adds this much to a frontier's path length per radian it lies off the heading."""
     frontier_exclude_radius_m: Annotated[float, Field(ge=0.0, le=5.0)] = 0.5
     """Frontiers this close to the robot are ignored (the camera cannot see beside it)."""
@@ -250,15 +255,15 @@ class DriveConfig(StrictModel):
 class SteeringConfig(StrictModel):
     """Choosing the window of advancement (heading and speed) from the map."""
 
-    cruise_speed_m_s: Annotated[float, Field(gt=0.0, le=2.0)] = 0.30
-    turn_speed_rad_s: Annotated[float, Field(gt=0.0, le=10.0)] = 1.0
+    cruise_speed_m_s: Annotated[float, Field(gt=0.0, le=2.0)] = 0.35
+    turn_speed_rad_s: Annotated[float, Field(gt=0.0, le=10.0)] = 1.5
     heading_gain_per_s: Annotated[float, Field(gt=0.0, le=20.0)] = 2.0
     """Angular speed per radian of heading error."""
     turn_in_place_rad: Annotated[float, Field(gt=0.0, le=3.2)] = 0.7
     """Heading errors above this turn in place instead of driving an arc."""
-    min_advance_m: Annotated[float, Field(gt=0.0, le=5.0)] = 0.45
+    min_advance_m: Annotated[float, Field(gt=0.0, le=5.0)] = 0.35
     """A direction is open when this much free floor lies along it."""
-    slow_down_m: Annotated[float, Field(gt=0.0, le=5.0)] = 0.8
+    slow_down_m: Annotated[float, Field(gt=0.0, le=5.0)] = 0.5
     """Speed falls linearly as the free range ahead shrinks from this to the clearance."""
     lookahead_m: Annotated[float, Field(gt=0.0, le=5.0)] = 0.6
     """Aim at the frontier path this far ahead."""
@@ -285,12 +290,23 @@ class SafetyConfig(StrictModel):
     autonomy_timeout_s: Annotated[float, Field(gt=0.0, le=5.0)] = 0.5
     min_clearance_m: Annotated[float, Field(ge=0.0, le=3.0)] = 0.20
     """Free floor needed ahead of the robot's front edge to move forward."""
+    auto_resume: bool = True
+    """After a protective stop (Uno link blip, camera gap, stale perception) autonomy
+    resumes by itself once the cause has been clear for ``resume_after_clear_s``;
+    otherwise it waits for ``POST /api/start``."""
+    resume_after_clear_s: Annotated[float, Field(ge=0.0, le=60.0)] = 1.0
+    fault_latch_repeats: Annotated[int, Field(ge=1, le=100)] = 3
+    """This many protective stops of one device cause within ``fault_latch_window_s``
+    latch a fault that needs the operator (``POST /api/fault/reset``)."""
+    fault_latch_window_s: Annotated[float, Field(gt=0.0, le=3600.0)] = 60.0
+    device_lost_latch_s: Annotated[float, Field(gt=0.0, le=600.0)] = 5.0
+    """A camera or Uno gone for longer than this latches a fault."""
 
 
 class RuntimeConfig(StrictModel):
     """The daemon."""
 
-    autostart: bool = False
+    autostart: bool = True
     """Start exploring as soon as the devices are up (the shipped simulator config does);
     otherwise wait for ``POST /api/start``."""
     log_json: bool = False

@@ -10,16 +10,24 @@ from pathlib import Path
 from typing import Any
 
 from app.config import FloornavConfig
-from app.devices import open_devices
+from app.devices import Devices, open_devices
 from app.fileio import json_safe, write_bytes_atomic
+from app.jit import JitReport, compile_kernels
 from app.logs import setup_logging
-from app.runtime import Runtime
+from app.mapping.map_files import MapFileError, export_ros_map, load_map, save_map
+from app.mapping.occupancy import SavedMap
+from app.runtime import CommandRefusedError, Runtime
 from app.web.auth import resolve_token
 
 log = logging.getLogger("floornav")
 
 
-def banner(config: FloornavConfig, config_source: str, description: dict[str, str]) -> str:
+def banner(
+    config: FloornavConfig,
+    config_source: str,
+    description: dict[str, str],
+    jit: JitReport | None = None,
+) -> str:
     web = config.web
     lines = [
         "floornav daemon",
@@ -28,6 +36,7 @@ def banner(config: FloornavConfig, config_source: str, description: dict[str, st
         f"  serial   {description.get('serial', '?')}",
         f"  world    {description['world']}" if "world" in description else "",
         f"  method   {config.perception.method}",
+        jit.banner_line() if jit is not None else "",
         f"  web      http://{web.host}:{web.port}/  (API /api, metrics /metrics)",
         f"  viser    port {config.viser.port} (localhost)" if config.viser.enabled else "",
         "  autonomy "
@@ -69,18 +78,72 @@ async def _freeze_startup_objects(runtime: Runtime) -> None:
     )
 
 
+def continue_map(runtime: Runtime, devices: Devices, saved: SavedMap, map_path: Path) -> None:
+    """Start from a saved map; the simulated robot is put where the map says it stood
+    (a real one has not moved while the daemon was off)."""
+    try:
+        runtime.restore_map(saved)
+    except (ValueError, CommandRefusedError) as exc:
+        raise MapFileError(f"{map_path}: cannot continue this map: {exc}") from exc
+    if devices.sim is not None:
+        devices.sim.robot.teleport(devices.sim.T_plan_odom.compose(saved.T_world_robot))
+
+
+def save_run_map(runtime: Runtime, map_path: Path) -> str | None:
+    """Save the map at exit (floornav's file and a ROS map_server copy); the path, or
+    None when there is no map (no floor calibration) or it could not be written."""
+    saved = runtime.saved_map()
+    if saved is None:
+        log.warning("no map to save (no floor calibration)", extra={"event": "map_not_saved"})
+        return None
+    try:
+        save_map(map_path, saved)
+        export_ros_map(map_path.with_suffix(".pgm"), map_path.with_suffix(".yaml"), saved)
+    except OSError as exc:
+        log.error("map not saved to %s: %s", map_path, exc, extra={"event": "map_not_saved"})
+        return None
+    log.info(
+        "map saved to %s (+ ROS %s/.yaml)",
+        map_path,
+        map_path.with_suffix(".pgm").name,
+        extra={"event": "map_saved"},
+    )
+    return str(map_path)
+
+
 def run_daemon(
     config: FloornavConfig,
     *,
     config_source: str,
     duration_s: float | None = None,
     report_path: Path | None = None,
+    map_path: Path | None = None,
 ) -> int:
-    """Run until stopped (or ``duration_s``); 0 on a clean stop, 1 if a stage crashed."""
+    """Run until stopped (or ``duration_s``); 0 on a clean stop, 1 if a stage crashed.
+
+    With ``map_path``, the run continues the map saved there (if the file exists) and
+    saves the map there on exit, with a ROS map_server copy (``.pgm`` + ``.yaml``)
+    beside it. A map file that cannot be used raises `MapFileError` before any device
+    opens, and is never overwritten."""
     setup_logging(config.runtime.log_level, json_lines=config.runtime.log_json)
     token, generated = resolve_token(config)
+    saved = load_map(map_path) if map_path is not None and map_path.exists() else None
+    # Before the devices open: a compile holds the GIL for seconds, which the running
+    # simulator, Uno link and event loop must never wait out.
+    log.info("preparing numba kernels", extra={"event": "jit_start"})
+    jit = compile_kernels(config)
+    log.info(
+        "numba kernels ready: %s",
+        jit.summary(),
+        extra={
+            "event": "jit",
+            "compiled": jit.compiled,
+            "loaded": jit.loaded,
+            "cache_dir": jit.cache_dir or "__pycache__ beside the sources",
+        },
+    )
     with open_devices(config) as devices:
-        print(banner(config, config_source, devices.description), flush=True)
+        print(banner(config, config_source, devices.description, jit), flush=True)
         if generated:
             # Printed once, on the run that created it; it is kept 0600 in token_file.
             print(
@@ -95,6 +158,8 @@ def run_daemon(
                 extra={"event": "autonomy_refused"},
             )
         runtime = Runtime(config, devices)
+        if saved is not None and map_path is not None:
+            continue_map(runtime, devices, saved, map_path)
         code = 0
         try:
             asyncio.run(_serve(runtime, duration_s, token))
@@ -104,6 +169,8 @@ def run_daemon(
             log.error("daemon stopped by an error: %s", exc, extra={"event": "crash"})
             code = 1
         report = runtime.report()
+        if map_path is not None:
+            report["map_file"] = save_run_map(runtime, map_path)
     if report_path is not None:
         write_report(report_path, report)
         log.info("report written to %s", report_path, extra={"event": "report"})

@@ -1,6 +1,10 @@
 """The devices a configuration selects, opened and closed together: the camera, the
 Uno's serial port (and how to make its link), the floor calibration, and for the
-simulator the world, the simulated robot and the simulated Uno."""
+simulator the world, the simulated robot and the simulated Uno.
+
+`open_uno` is the one place that chooses the Uno backend (``[serial] backend``); the
+daemon and ``floornav uno-check`` both get their port from it.
+"""
 
 from __future__ import annotations
 
@@ -9,18 +13,19 @@ from collections.abc import Callable, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 
-from app.config import ConfigError, ConfigIssue, FloornavConfig
-from app.hardware.cameras import OpenCVCamera, ReplayCamera, SimCamera
-from app.hardware.interfaces import Camera
+from app.config import ConfigError, ConfigIssue, FloornavConfig, SerialConfig
+from app.hardware.cameras import OpenCVCamera, ReplayCamera
+from app.hardware.interfaces import Camera, MotorPlant
+from app.hardware.link_settings import link_config
 from app.hardware.serial_link import UnoLink
 from app.hardware.simavr import SimavrUno
-from app.hardware.uno_backends import link_config
 from app.mapping.calibration import CalibrationError, FloorCalibration, Intrinsics
 from app.mapping.calibration_files import load_floor_calibration, load_intrinsics
 from app.mapping.frames import Pose2D
+from app.sim.camera import SimCamera
 from app.sim.robot import RobotParams, SimRobot
 from app.sim.setup import camera_model, renderer_from_config, sim_floor_calibration
-from app.sim.sim_uno import SimulatedUno
+from app.sim.uno_process import SimulatedUnoProcess
 from app.sim.world import World
 
 
@@ -30,11 +35,43 @@ class SimHandles:
 
     world: World
     robot: SimRobot
-    uno: SimulatedUno | None
-    """The pure-Python Uno (None when the firmware runs in simavr)."""
+    uno: SimulatedUnoProcess | None
+    """The pure-Python Uno, in its own process (None when the firmware runs in simavr)."""
     camera: SimCamera | None
     T_plan_odom: Pose2D
     """Where odometry's origin (the robot at start-up) lies in the floor plan."""
+
+
+@dataclass(frozen=True)
+class UnoDevice:
+    """The started Uno: where to open it and what it is."""
+
+    port: str
+    description: str
+    simulated: SimulatedUnoProcess | None = None
+    """The simulated Uno's process (backend "sim"), for observation and fault injection."""
+
+
+@contextlib.contextmanager
+def open_uno(serial: SerialConfig, plant: MotorPlant | None = None) -> Iterator[UnoDevice]:
+    """Start the Uno ``serial.backend`` names (simulated ones only; a real board is just
+    a port) and yield where to open it; a simulated one is stopped on exit.
+
+    ``plant`` receives the simulated motor outputs and feeds back the encoders (a
+    trivial integrating plant when None); a real board ignores it.
+
+    Raises
+    ------
+    SimulatedUnoError, SimavrError : a simulated Uno that cannot start.
+    """
+    if serial.backend == "sim":
+        with SimulatedUnoProcess(plant) as uno:
+            yield UnoDevice(uno.port, f"simulated Uno on {uno.port}", uno)
+    elif serial.backend == "simavr":
+        with SimavrUno(plant) as firmware:
+            yield UnoDevice(firmware.port, f"firmware in simavr on {firmware.port}")
+    else:
+        yield UnoDevice(serial.port, f"Uno on {serial.port}")
 
 
 @dataclass
@@ -144,21 +181,11 @@ def open_devices(config: FloornavConfig) -> Iterator[Devices]:
             description["camera"] = f"replay {cam_cfg.device}"
         stack.callback(camera.close)
 
-        backend = config.serial.backend
-        if backend == "sim":
-            assert sim is not None
-            uno = stack.enter_context(SimulatedUno(sim.robot))
-            sim.uno = uno
-            port = uno.port
-            description["serial"] = f"simulated Uno on {port}"
-        elif backend == "simavr":
-            assert sim is not None
-            firmware = stack.enter_context(SimavrUno(sim.robot))
-            port = firmware.port
-            description["serial"] = f"firmware in simavr on {port}"
-        else:
-            port = config.serial.port
-            description["serial"] = f"Uno on {port}"
+        uno = stack.enter_context(open_uno(config.serial, sim.robot if sim is not None else None))
+        if sim is not None:
+            sim.uno = uno.simulated
+        port = uno.port
+        description["serial"] = uno.description
         timing = link_config(config.serial)
         yield Devices(
             camera=camera,

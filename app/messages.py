@@ -23,7 +23,8 @@ class State(StrEnum):
     TELEOP = "teleop"  # a person drives (over autonomy, if it was running)
     ESTOPPED = "estopped"  # latched until reset
     CALIBRATING = "calibrating"
-    FAULT = "fault"  # camera or Uno gone; motors zero, devices retried
+    PROTECTIVE_STOP = "protective_stop"  # a transient cause holds the motors at zero
+    FAULT = "fault"  # latched (a cause that repeats, a device gone): needs the operator
 
 
 @dataclass(frozen=True)
@@ -85,6 +86,39 @@ class MapMsg:
 
     def age_s(self, now_s: float | None = None) -> float:
         return (time.monotonic() if now_s is None else now_s) - self.capture_s
+
+
+@dataclass(frozen=True)
+class WorldMapMsg:
+    """The whole map as the web and other readers see it, published at most
+    ``WORLD_MAP_PERIOD_S`` apart: a read-only copy, so no reader ever touches the
+    mapper's arrays while the mapping thread changes them.
+
+    Attributes
+    ----------
+    cells : classes (-1 unknown, 0 free, 1 occupied) of the whole world grid, read-only
+    grid : the world grid's geometry (odometry frame)
+    T_odom_robot : the robot's pose when the snapshot was taken
+    path_xy, goal_xy, frontier_reason, frontier_clusters : the newest frontier search
+    """
+
+    seq: int
+    done_s: float
+    cells: NDArray[np.int8] = field(repr=False)
+    grid: GroundGrid
+    T_odom_robot: Pose2D
+    path_xy: NDArray[np.float64] | None = field(repr=False)
+    goal_xy: tuple[float, float] | None
+    frontier_reason: str
+    frontier_clusters: int
+
+    @property
+    def free_cells(self) -> int:
+        return int(np.count_nonzero(self.cells == 0))
+
+    @property
+    def occupied_cells(self) -> int:
+        return int(np.count_nonzero(self.cells == 1))
 
 
 @dataclass(frozen=True)

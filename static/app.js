@@ -144,13 +144,14 @@ function renderStatus(s) {
     banner.textContent = "E-STOP latched: " + (s.estop || "") + ". Reset it to drive again.";
   } else if (s.fault) {
     banner.hidden = false;
-    banner.className = "banner";
-    banner.textContent = "Fault, motors held at zero: " + s.fault;
-  } else if (s.stop_cause === "not_floor" && s.stop_reason) {
+    banner.className = "banner bad";
+    banner.textContent = "Fault latched, motors held at zero: " + s.fault +
+      ". Fix the cause, then Reset fault and Start.";
+  } else if (s.stop_reason && s.stop_cause !== "clearance") {
     // A protective stop: it clears by itself, so a warning rather than an alarm.
     banner.hidden = false;
     banner.className = "banner";
-    banner.textContent = "Stopped: " + s.stop_reason;
+    banner.textContent = "Protective stop (clears by itself): " + s.stop_reason;
   } else {
     banner.hidden = true;
   }
@@ -178,6 +179,9 @@ function renderStatus(s) {
   setCell("h-calibration", s.calibration ? "reprojection RMS " + fmt(s.calibration.reprojection_rms_px, 2) + " px"
     : (s.calibration_problem || "none"), s.calibration ? "ok" : "warn");
   setCell("h-fault", s.fault || "none", s.fault ? "bad" : "ok");
+  const last = s.last_stop;
+  setCell("h-last-stop", last ? `${last.cause}: ${last.reason} · ${fmt(last.age_s, 0)} s ago` +
+    (last.latched ? " · latched" : "") : "none", last && last.latched ? "bad" : "");
   setCell("h-estops", fmt(s.estops));
 
   const body = $("stages").tBodies[0];
@@ -212,6 +216,7 @@ function renderStatus(s) {
     $("takeover-box").hidden = true;
   }
   $("estop-reset").disabled = s.state !== "estopped";
+  $("fault-reset").hidden = !s.fault;
   $("start").disabled = s.autonomous || s.state === "estopped";
   $("stop").disabled = !s.autonomous;
 }
@@ -508,6 +513,11 @@ async function resetEstop() {
   showMessage("control-message", reply.ok ? "e-stop reset" : detailOf(reply), !reply.ok);
 }
 
+async function resetFault() {
+  const reply = await api("POST", "/api/fault/reset");
+  showMessage("control-message", reply.ok ? "fault reset: start again when ready" : detailOf(reply), !reply.ok);
+}
+
 async function startExploring() {
   const reply = await api("POST", "/api/start");
   showMessage("control-message", reply.ok ? "exploring" : "start refused: " + detailOf(reply), !reply.ok);
@@ -735,6 +745,7 @@ function toggleZoneEditor() {
 function wire() {
   $("estop").addEventListener("click", estop);
   $("estop-reset").addEventListener("click", resetEstop);
+  $("fault-reset").addEventListener("click", resetFault);
   $("start").addEventListener("click", startExploring);
   $("stop").addEventListener("click", stopExploring);
   $("takeover").addEventListener("click", () => {

@@ -5,7 +5,7 @@ from pathlib import Path
 import pytest
 
 from app.cli import main
-from app.config import ConfigError, PerceptionConfig, load_config
+from app.config import ConfigError, FloornavConfig, PerceptionConfig, load_config
 
 from .conftest import PROJECT_ROOT
 
@@ -83,8 +83,19 @@ def test_validate_config_command(tmp_path: Path, capsys: pytest.CaptureFixture[s
     assert "perception.method" in out
 
 
-def test_the_shipped_perception_section_is_the_models_default() -> None:
-    """Tests built on PerceptionConfig() see the same perception as the daemon."""
-    shipped = load_config(PROJECT_ROOT / "config.toml").perception
-    assert shipped == PerceptionConfig()
-    assert shipped.method == "floornet"
+def test_the_shipped_configuration_is_the_models_default() -> None:
+    """Tests built on FloornavConfig() run the same robot as the daemon: every key of the
+    shipped config.toml equals the model's default (the file only writes them out)."""
+    shipped = load_config(PROJECT_ROOT / "config.toml")
+    default = FloornavConfig()
+    model = default.model_dump()
+    differing = [
+        f"{section}.{key}: config.toml {value!r} != model {model[section][key]!r}"
+        for section, values in shipped.model_dump().items()
+        for key, value in values.items()
+        if model[section][key] != value
+    ]
+    assert differing == []
+    assert shipped == default
+    assert shipped.perception == PerceptionConfig()
+    assert shipped.perception.method == "floornet"

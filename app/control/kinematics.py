@@ -124,6 +124,15 @@ class WheelOdometry:
         """Forget the last counts (after a reconnect the device's counters may restart)."""
         self._last_ticks = None
 
+    def start_at(self, pose: Pose2D, distance_m: float = 0.0) -> None:
+        """Continue from ``pose`` (a saved map's last pose: the robot has not moved while
+        the daemon was off), before the first telemetry arrives."""
+        self.pose = pose
+        self.distance_m = distance_m
+        self._last_ticks = None
+        self._history.clear()
+        self._times.clear()
+
     def update(self, left_ticks: int, right_ticks: int, time_s: float) -> Pose2D:
         if self._last_ticks is not None:
             dl = _tick_delta(left_ticks, self._last_ticks[0]) * self.meters_per_tick

@@ -8,12 +8,9 @@
     A video file, a folder of images, or a `app.hardware.recorder` recording, paced at
     the source's rate (or a given fps), optionally looping; ``ENDED`` at the end,
     ``FAILED`` on an unreadable source. Never raises from its thread.
-`SimCamera`
-    The simulator's renderer at the robot's current pose, at a fixed fps on a thread
-    or on demand; the ground truth of each frame is kept with it
-    (`SimCamera.latest_with_truth`).
 
-All three share the same contract: `open` starts the thread and returns at once,
+Both, and the simulator's camera (`app.sim.camera.SimCamera`), build on
+`ThreadedCamera` and share its contract: `open` starts the thread and returns at once,
 ``latest(max_age_s)`` never blocks and refuses frames older than ``max_age_s``
 (``time.monotonic`` seconds), `close` stops the thread. They are context managers.
 """
@@ -25,7 +22,6 @@ import logging
 import threading
 import time
 from abc import ABC, abstractmethod
-from collections.abc import Callable
 from pathlib import Path
 from types import TracebackType
 from typing import Self
@@ -36,15 +32,13 @@ from numpy.typing import NDArray
 
 from app.hardware.interfaces import CameraFrame, DeviceState, DeviceStatus
 from app.imageio import ImageFileError, read_bgr
-from app.mapping.frames import Pose2D
-from app.sim.render import RenderedFrame, Renderer
 
 log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".bmp"})
 
 
-class _ThreadedCamera(ABC):
+class ThreadedCamera(ABC):
     """The shared part: a worker thread, the newest frame, the status."""
 
     _thread_name = "camera"
@@ -122,7 +116,7 @@ class _ThreadedCamera(ABC):
         """The source's loop, run on the camera thread until ``_stop`` is set."""
 
 
-class OpenCVCamera(_ThreadedCamera):
+class OpenCVCamera(ThreadedCamera):
     """A webcam through OpenCV (V4L2 on Linux).
 
     Parameters
@@ -191,7 +185,7 @@ class OpenCVCamera(_ThreadedCamera):
             backoff = min(self.retry_max_s, backoff * 2)
 
 
-class ReplayCamera(_ThreadedCamera):
+class ReplayCamera(ThreadedCamera):
     """Plays back a video file, an image folder (sorted by name) or a recording folder
     (``frames/`` + ``log.jsonl``, paced by its recorded timestamps).
 
@@ -310,78 +304,3 @@ class ReplayCamera(_ThreadedCamera):
             if not self.loop:
                 self._set_status(DeviceState.ENDED, f"{self.source}: end")
                 return
-
-
-class SimCamera(_ThreadedCamera):
-    """The simulated camera: renders at ``pose_source()`` (plan frame).
-
-    With ``fps`` set it renders that many frames a second on its own thread (the
-    renderer is then used by that thread only); with ``fps=None`` it renders on demand,
-    in the caller's thread, at each `latest` / `latest_with_truth` call (serialised by a
-    lock), so a test or an offline loop gets exactly the pose it just set.
-
-    `latest_with_truth` returns the frame together with its `RenderedFrame` (floor
-    mask and the exact pose it was rendered at).
-    """
-
-    _thread_name = "sim-camera"
-
-    def __init__(
-        self,
-        renderer: Renderer,
-        pose_source: Callable[[], Pose2D],
-        *,
-        fps: float | None = 15.0,
-    ) -> None:
-        super().__init__()
-        if fps is not None and not 0 < fps <= 1000:
-            raise ValueError(f"fps must be in (0, 1000] or None, got {fps}")
-        self.renderer = renderer
-        self.pose_source = pose_source
-        self.fps = fps
-        self._truth: tuple[CameraFrame, RenderedFrame] | None = None
-        self._render_lock = threading.Lock()
-        self._open = False
-
-    def open(self) -> None:
-        self._open = True
-        if self.fps is None:
-            self._set_status(DeviceState.CONNECTED)
-        else:
-            super().open()
-
-    def close(self) -> None:
-        self._open = False
-        super().close()
-
-    def latest(self, max_age_s: float) -> CameraFrame | None:
-        pair = self.latest_with_truth(max_age_s)
-        return None if pair is None else pair[0]
-
-    def latest_with_truth(self, max_age_s: float) -> tuple[CameraFrame, RenderedFrame] | None:
-        if self.fps is None:
-            return self._render_now() if self._open else None
-        with self._lock:
-            pair = self._truth
-        if pair is None or time.monotonic() - pair[0].timestamp_s > max_age_s:
-            return None
-        return pair
-
-    def _render_now(self) -> tuple[CameraFrame, RenderedFrame]:
-        with self._render_lock:
-            rendered = self.renderer.render(self.pose_source())
-            frame = self._publish(rendered.image, time.monotonic())
-            pair = (frame, rendered)
-            with self._lock:
-                self._truth = pair
-        return pair
-
-    def _run(self) -> None:
-        assert self.fps is not None
-        period = 1.0 / self.fps
-        next_s = time.monotonic()
-        while not self._stop.is_set():
-            self._render_now()
-            self._set_status(DeviceState.CONNECTED)
-            next_s = max(next_s + period, time.monotonic() - period)
-            self._stop.wait(max(0.0, next_s - time.monotonic()))

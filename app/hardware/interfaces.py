@@ -1,8 +1,9 @@
 """The small interfaces hardware (real or simulated) is used through.
 
-Implementations: ``app.hardware.cameras`` (webcam, replay, simulated) and
-``app.hardware.serial_link`` (the Uno over a serial port, real or a pty). The simulated
-world (``app.sim``) provides a `MotorPlant` for the simulated Uno to drive.
+Implementations: ``app.hardware.cameras`` (webcam, replay) and
+``app.hardware.serial_link`` (the Uno over a serial port, real or a pty). The simulator
+(``app.sim``, which builds on this package, never the reverse) provides a simulated
+camera and a `MotorPlant` for the simulated Uno to drive.
 """
 
 from __future__ import annotations

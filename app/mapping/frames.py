@@ -116,3 +116,24 @@ class GroundGrid:
         row = np.floor((self.x_max_m - pts[:, 0]) / self.cell_m).astype(np.int64)
         col = np.floor((self.y_max_m - pts[:, 1]) / self.cell_m).astype(np.int64)
         return np.column_stack((row, col))
+
+
+def same_geometry(a: GroundGrid, b: GroundGrid, tol_m: float = 1e-6) -> bool:
+    """Whether two rasters cover the same cells: equal shapes, and cell size and corner
+    equal within ``tol_m`` (the numbers may have passed through a text file)."""
+    return (
+        a.shape == b.shape
+        and abs(a.cell_m - b.cell_m) <= tol_m
+        and abs(a.x_max_m - b.x_max_m) <= tol_m
+        and abs(a.y_max_m - b.y_max_m) <= tol_m
+    )
+
+
+def describe_grid(grid: GroundGrid) -> str:
+    """``'400 x 400 cells of 0.05 m over x [-10, 10] m, y [-10, 10] m'``, for messages."""
+    x_min = grid.x_max_m - grid.rows * grid.cell_m
+    y_min = grid.y_max_m - grid.cols * grid.cell_m
+    return (
+        f"{grid.rows} x {grid.cols} cells of {grid.cell_m:g} m over"
+        f" x [{x_min:g}, {grid.x_max_m:g}] m, y [{y_min:g}, {grid.y_max_m:g}] m"
+    )

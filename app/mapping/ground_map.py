@@ -18,7 +18,14 @@ from app.mapping.calibration import FloorCalibration
 from app.mapping.frames import FLOOR, GroundGrid, Pose2D
 from app.mapping.frontiers import FrontierParams, FrontierSearch, find_frontiers, footprint_mask
 from app.mapping.ipm import BirdseyeMap, birdseye_floor_patch, build_birdseye_map
-from app.mapping.occupancy import FREE, UNKNOWN, OccupancyGrid, OccupancyParams, UpdateSummary
+from app.mapping.occupancy import (
+    FREE,
+    UNKNOWN,
+    OccupancyGrid,
+    OccupancyParams,
+    SavedMap,
+    UpdateSummary,
+)
 from app.perception.planar import PlanarParams, confirm_floor, view_homography
 
 PARALLAX_PERIOD_S = 0.2
@@ -51,7 +58,8 @@ def occupancy_params(mapping: MappingConfig) -> OccupancyParams:
         free_threshold=mapping.free_threshold,
         occupied_threshold=mapping.occupied_threshold,
         obstacle_band_m=mapping.obstacle_band_m,
-        half_life_s=mapping.evidence_half_life_s,
+        half_distance_m=mapping.evidence_half_distance_m,
+        turn_radius_m=mapping.evidence_turn_radius_m,
         # The camera never sees under the robot; where the robot stands is floor.
         footprint_free_radius_m=mapping.robot_radius_m,
     )
@@ -131,19 +139,38 @@ class GroundMapper:
         now_s: float,
         image: NDArray[np.uint8] | None = None,
     ) -> MapUpdate:
-        """Fuse one frame's floor mask seen at ``T_world_robot``. With the frame's
-        ``image`` (BGR or grey), the floor is first extended where motion parallax
-        against an earlier frame confirms it (`app.perception.planar`)."""
+        """Fuse one frame's floor mask seen at ``T_world_robot`` (the travel from the
+        previous call's pose fades the older evidence; time alone never does). With the
+        frame's ``image`` (BGR or grey), the floor is first extended where motion parallax
+        against an earlier frame confirms it (`app.perception.planar`); ``now_s`` paces
+        that test."""
         if image is not None and self.parallax is not None:
             floor_mask = self._confirm_by_parallax(floor_mask, image, T_world_robot, now_s)
         patch = birdseye_floor_patch(floor_mask, self.birdseye)
         # The thesis's safe-zone assumption: the strip just ahead of the robot, below the
         # camera's view, is free floor.
         patch[self.blind_zone] = FLOOR
-        summary = self.grid.update(
-            patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot, now_s
-        )
+        summary = self.grid.update(patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot)
         return MapUpdate(patch, summary)
+
+    def snapshot(self) -> SavedMap:
+        """A read-only copy of the map for saving (`app.mapping.map_files.save_map`); call
+        it in the thread that runs `update`."""
+        return self.grid.snapshot()
+
+    def restore(self, snapshot: SavedMap) -> None:
+        """Continue from a saved map (`app.mapping.map_files.load_map`): the grid takes its
+        evidence, travel and robot pose (see `OccupancyGrid.restore`), and the frames kept
+        for the parallax test are dropped (their poses belong to the map being replaced).
+
+        Raises
+        ------
+        ValueError
+            The map is of another world grid; the mapper is then unchanged.
+        """
+        self.grid.restore(snapshot)
+        self._views.clear()
+        self._confirmed = None
 
     def _confirm_by_parallax(
         self, floor_mask: NDArray[np.bool_], image: NDArray[np.uint8], pose: Pose2D, now_s: float

@@ -44,15 +44,39 @@ One update takes a ground patch from inverse perspective mapping (a robot-frame
    cells should be no larger than the world's (ideally half or less), or splatted centres
    leave holes; larger ones are refused.
 
-3. **Decay.** Evidence fades towards 0 (unknown) with a half-life: every log-odds value
-   is multiplied by ``0.5 ** (elapsed / half_life_s)``. The multiply is global and lazy:
-   an update applies it only when at least ``decay_interval_s`` passed since the last one
-   (with the true elapsed time, so the result does not depend on the interval), before
-   adding the frame's evidence; `OccupancyGrid.decay_to` applies it on demand.
+3. **Decay by travel.** Evidence fades towards 0 (unknown) with the distance the robot
+   travels, never with time alone: every log-odds value is multiplied by
+   ``0.5 ** (travel / half_distance_m)``. Why travel: the map goes stale because the pose
+   it was fused at drifts (odometry error grows with how far the wheels roll, not with the
+   clock), while a changed world is corrected by contradicting observations (log-odds
+   addition and clamping), not by forgetting. A robot that stands still (stopped, faulted,
+   waiting for a start) keeps its map exactly.
+
+   Travel between two poses (`travel_m`) is the mean distance the two wheels of a
+   differential drive roll between them, ``max(|Δposition|, turn_radius_m * |Δheading|)``
+   with ``turn_radius_m`` half the wheel base. So turning in place counts (a spin turn
+   slips the wheels, and heading error is the costliest odometry error: 1° moves a wall
+   3 m away by 5 cm), and an arc is not counted twice.
+
+   The decay is global and lazy, and counted from an anchor pose: an update measures the
+   travel from the anchor to its pose, and once that reaches ``decay_step_m`` it multiplies
+   every log-odds value by the factor for that travel, adds it to
+   `OccupancyGrid.travelled_m` and makes its pose the new anchor (before adding the
+   frame's evidence). Why an anchor rather than summing every step: a pose that jitters
+   about a point (encoder ticks of a vibrating robot, estimator noise) never adds up to
+   travel, so a standing robot keeps its map exactly; the price is that the path is
+   measured in chords of at least ``decay_step_m`` (5 cm), which cuts corners by
+   millimetres and ignores shuffling within 5 cm. The first update after construction
+   or `OccupancyGrid.reset` only sets the anchor; a pose jump (an odometry reset) counts
+   as travel, which fades the map it misplaces. `OccupancyGrid.snapshot` applies the
+   pending travel (anchor to last pose) to its copy.
 
 Cell classes (`classify`, int8): ``UNKNOWN = -1``, ``FREE = 0``, ``OCCUPIED = 1``; a cell
 is occupied when its log-odds is above ``occupied_threshold``, free when below
 ``free_threshold``, unknown otherwise (never observed, conflicting, or decayed).
+
+A `SavedMap` is a read-only copy of a grid's state (`OccupancyGrid.snapshot`) that
+`OccupancyGrid.restore` puts back; `app.mapping.map_files` saves and loads it.
 """
 
 from __future__ import annotations
@@ -64,7 +88,15 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
-from app.mapping.frames import FLOOR, NOT_FLOOR, UNSEEN, GroundGrid, Pose2D
+from app.mapping.frames import (
+    FLOOR,
+    NOT_FLOOR,
+    UNSEEN,
+    GroundGrid,
+    Pose2D,
+    describe_grid,
+    same_geometry,
+)
 
 UNKNOWN = -1
 """`classify` code: no (or not enough) evidence."""
@@ -95,8 +127,13 @@ class OccupancyParams:
         obstacle sighting enough for "occupied" but ask two floor sightings for "free".
     obstacle_band_m : float, >= 0, thickness along a ray of the occupied band, from the
         first not-floor cell (which is always in it).
-    half_life_s : float, > 0 (``math.inf`` disables decay).
-    decay_interval_s : float, >= 0, least time between two lazy global decays.
+    half_distance_m : float, > 0, travel that halves all evidence (``math.inf`` disables
+        decay).
+    turn_radius_m : float, >= 0, turning by an angle counts as this radius times the
+        angle of travel (half the wheel base: the distance each wheel rolls in a spin
+        turn); 0 makes turning in place free.
+    decay_step_m : float, >= 0, travel from the anchor pose that triggers a global decay
+        (smaller pose changes, however many, decay nothing).
     footprint_free_radius_m : float, >= 0; when > 0, world cells whose centres lie within
         this distance of the robot's position get a free update every frame (the robot
         stands there, and the camera never sees under it). 0 disables it.
@@ -109,15 +146,16 @@ class OccupancyParams:
     free_threshold: float = -0.5
     occupied_threshold: float = 0.5
     obstacle_band_m: float = 0.03
-    half_life_s: float = 30.0
-    decay_interval_s: float = 0.2
+    half_distance_m: float = 10.0
+    turn_radius_m: float = 0.10
+    decay_step_m: float = 0.05
     footprint_free_radius_m: float = 0.0
 
     def __post_init__(self) -> None:
         values = {name: getattr(self, name) for name in self.__dataclass_fields__}
         for name, value in values.items():
             finite = isinstance(value, int | float) and math.isfinite(value)
-            if not (finite or (name == "half_life_s" and value == math.inf)):
+            if not (finite or (name == "half_distance_m" and value == math.inf)):
                 raise ValueError(f"OccupancyParams.{name}: expected a finite number, got {value!r}")
         if not (self.log_odds_free < 0 < self.log_odds_occupied):
             raise ValueError("OccupancyParams: need log_odds_free < 0 < log_odds_occupied")
@@ -128,9 +166,11 @@ class OccupancyParams:
                 "OccupancyParams: need clamp_min <= free_threshold <= occupied_threshold"
                 " <= clamp_max"
             )
-        if not self.half_life_s > 0:
-            raise ValueError(f"OccupancyParams.half_life_s: must be > 0, got {self.half_life_s}")
-        for name in ("obstacle_band_m", "decay_interval_s", "footprint_free_radius_m"):
+        if not self.half_distance_m > 0:
+            raise ValueError(
+                f"OccupancyParams.half_distance_m: must be > 0, got {self.half_distance_m}"
+            )
+        for name in ("obstacle_band_m", "turn_radius_m", "decay_step_m", "footprint_free_radius_m"):
             if values[name] < 0:
                 raise ValueError(f"OccupancyParams.{name}: must be >= 0, got {values[name]}")
 
@@ -649,18 +689,38 @@ def fuse_patch_labels(
 # ------------------------------------------------------------- decay, classification
 
 
-def decay_factor(elapsed_s: float, half_life_s: float) -> float:
-    """``0.5 ** (elapsed_s / half_life_s)``: the multiplier of log-odds after
-    ``elapsed_s`` seconds (1 for an infinite half-life).
+def decay_factor(travel_m: float, half_distance_m: float) -> float:
+    """``0.5 ** (travel_m / half_distance_m)``: the multiplier of log-odds after
+    ``travel_m`` metres of travel (1 for an infinite half-distance).
 
-    >>> decay_factor(30.0, 30.0)
+    >>> decay_factor(10.0, 10.0)
     0.5
     """
-    if not (elapsed_s >= 0 and math.isfinite(elapsed_s)):
-        raise ValueError(f"elapsed_s: must be finite and >= 0, got {elapsed_s}")
-    if not half_life_s > 0:
-        raise ValueError(f"half_life_s: must be > 0, got {half_life_s}")
-    return float(0.5 ** (elapsed_s / half_life_s))
+    if not (travel_m >= 0 and math.isfinite(travel_m)):
+        raise ValueError(f"travel_m: must be finite and >= 0, got {travel_m}")
+    if not half_distance_m > 0:
+        raise ValueError(f"half_distance_m: must be > 0, got {half_distance_m}")
+    return float(0.5 ** (travel_m / half_distance_m))
+
+
+def travel_m(previous: Pose2D, current: Pose2D, turn_radius_m: float) -> float:
+    """Travel between two successive poses: the mean distance the wheels of a
+    differential drive roll, ``max(|Δposition|, turn_radius_m * |Δheading|)`` (each wheel
+    rolls the centre's distance plus or minus ``turn_radius_m`` times the turn; the mean of
+    the two magnitudes is the larger term). The heading change is wrapped to [-pi, pi].
+
+    >>> travel_m(Pose2D(), Pose2D(3.0, 4.0, 0.1), 0.1)
+    5.0
+    >>> round(travel_m(Pose2D(), Pose2D(0.0, 0.0, -math.pi / 2), 0.1), 4)  # spin turn
+    0.1571
+    """
+    check_pose(previous, "previous")
+    check_pose(current, "current")
+    if not (0 <= turn_radius_m < math.inf):
+        raise ValueError(f"turn_radius_m: must be finite and >= 0, got {turn_radius_m}")
+    moved = math.hypot(current.x_m - previous.x_m, current.y_m - previous.y_m)
+    turned = abs(math.remainder(current.theta_rad - previous.theta_rad, math.tau))
+    return max(moved, turn_radius_m * turned)
 
 
 def classify_log_odds(
@@ -690,6 +750,71 @@ def log_odds_to_probability(log_odds: NDArray[np.floating]) -> NDArray[np.float3
 # ------------------------------------------------------------------------ the grid
 
 
+@dataclass(frozen=True, eq=False)
+class SavedMap:
+    """A consistent, read-only copy of a grid's state: what a map file holds.
+
+    Attributes
+    ----------
+    log_odds : (world_grid.rows, world_grid.cols) float32, finite, read-only; the pending
+        travel decay is already applied.
+    world_grid : GroundGrid of the world frame (the map's frame).
+    free_threshold, occupied_threshold : float, the cuts the map was classified with.
+    T_world_robot : Pose2D, the robot's pose in the map's frame at the last update (the
+        world origin, its start pose, if there was none).
+    travelled_m : float >= 0, the robot's travel fused into the map so far.
+    """
+
+    log_odds: NDArray[np.float32] = field(repr=False)
+    world_grid: GroundGrid
+    free_threshold: float
+    occupied_threshold: float
+    T_world_robot: Pose2D
+    travelled_m: float
+
+    def __post_init__(self) -> None:
+        check_grid(self.world_grid, "world_grid")
+        check_pose(self.T_world_robot)
+        log_odds = self.log_odds
+        if (
+            not isinstance(log_odds, np.ndarray)
+            or log_odds.dtype != np.float32
+            or log_odds.shape != self.world_grid.shape
+        ):
+            kind = (
+                f"{log_odds.dtype} {log_odds.shape}"
+                if isinstance(log_odds, np.ndarray)
+                else type(log_odds).__name__
+            )
+            raise ValueError(
+                f"log_odds: expected float32 of shape {self.world_grid.shape}, got {kind}"
+            )
+        if not np.isfinite(log_odds).all():
+            raise ValueError(
+                f"log_odds: {np.count_nonzero(~np.isfinite(log_odds))} cells are not finite"
+            )
+        thresholds = (self.free_threshold, self.occupied_threshold)
+        if not (all(math.isfinite(v) for v in thresholds) and thresholds[0] <= thresholds[1]):
+            raise ValueError(
+                f"thresholds: need finite free_threshold <= occupied_threshold, got {thresholds}"
+            )
+        if not (math.isfinite(self.travelled_m) and self.travelled_m >= 0):
+            raise ValueError(f"travelled_m: must be finite and >= 0, got {self.travelled_m}")
+        # A read-only view: holders of the snapshot cannot change it (the grid's snapshot()
+        # hands over a fresh copy nobody else holds).
+        view = log_odds.view()
+        view.setflags(write=False)
+        object.__setattr__(self, "log_odds", view)
+
+    def classify(self) -> NDArray[np.int8]:
+        """(rows, cols) int8: ``UNKNOWN`` (-1), ``FREE`` (0), ``OCCUPIED`` (1)."""
+        return classify_log_odds(
+            self.log_odds,
+            free_threshold=self.free_threshold,
+            occupied_threshold=self.occupied_threshold,
+        )
+
+
 class OccupancyGrid:
     """A world-frame log-odds occupancy grid (see the module docstring).
 
@@ -701,6 +826,8 @@ class OccupancyGrid:
     Attributes
     ----------
     log_odds : (rows, cols) float32, 0 = unknown; may be read (and, in tests, written).
+    travelled_m : float, the robot's travel counted so far (metres, up to the anchor pose
+        of the last decay).
     world_grid, params
     """
 
@@ -709,7 +836,9 @@ class OccupancyGrid:
         self.world_grid = world_grid
         self.params = params if params is not None else OccupancyParams()
         self.log_odds: NDArray[np.float32] = np.zeros(world_grid.shape, dtype=np.float32)
-        self._last_decay_s: float | None = None
+        self.travelled_m = 0.0
+        self._anchor: Pose2D | None = None
+        self._last_pose: Pose2D | None = None
         self._table: PolarTable | None = None
 
     @classmethod
@@ -736,29 +865,29 @@ class OccupancyGrid:
             self._table = table
         return table
 
-    def decay_to(self, now_s: float) -> bool:
-        """Apply the decay for the time elapsed since the last one (the first call only
-        starts the clock). Returns whether the log-odds were multiplied."""
-        return self._decay(now_s, min_interval_s=0.0)
-
-    def _decay(self, now_s: float, *, min_interval_s: float) -> bool:
-        if not math.isfinite(now_s):
-            raise ValueError(f"now_s: must be finite, got {now_s}")
-        last = self._last_decay_s
-        if last is None:
-            self._last_decay_s = now_s
+    def _advance(self, T_world_robot: Pose2D) -> bool:
+        """Decay by the travel from the anchor pose once it reaches ``decay_step_m`` (see
+        the module docstring). Returns whether the log-odds were multiplied."""
+        self._last_pose = T_world_robot
+        if self._anchor is None:
+            self._anchor = T_world_robot
             return False
-        elapsed = now_s - last
-        if elapsed < 0:
-            raise ValueError(f"now_s: time went backwards ({now_s} < {last}); call reset()")
-        if elapsed < min_interval_s or elapsed == 0:
+        step_m = self._pending_travel_m()
+        if step_m < self.params.decay_step_m:
             return False
-        factor = decay_factor(elapsed, self.params.half_life_s)
-        self._last_decay_s = now_s
+        self.travelled_m += step_m
+        self._anchor = T_world_robot
+        factor = decay_factor(step_m, self.params.half_distance_m)
         if factor == 1.0:
             return False
         self.log_odds *= np.float32(factor)
         return True
+
+    def _pending_travel_m(self) -> float:
+        """Travel from the anchor to the last pose, not yet decayed."""
+        if self._anchor is None or self._last_pose is None:
+            return 0.0
+        return travel_m(self._anchor, self._last_pose, self.params.turn_radius_m)
 
     def update(
         self,
@@ -766,9 +895,9 @@ class OccupancyGrid:
         patch_grid: GroundGrid,
         T_world_robot: Pose2D,
         camera_xy_robot: tuple[float, float],
-        now_s: float,
     ) -> UpdateSummary:
-        """Fuse one robot-frame ground patch seen at ``T_world_robot`` at time ``now_s``.
+        """Fuse one robot-frame ground patch seen at ``T_world_robot``; the travel from the
+        previous update's pose decays the evidence first (see the module docstring).
 
         Parameters
         ----------
@@ -778,7 +907,6 @@ class OccupancyGrid:
         T_world_robot : Pose2D, the robot's pose in the world when the frame was taken.
         camera_xy_robot : (x, y) metres, the camera's position on the floor in the robot
             frame (the rays' origin).
-        now_s : float seconds, monotonic, non-decreasing between calls.
 
         Returns
         -------
@@ -789,7 +917,7 @@ class OccupancyGrid:
         check_pose(T_world_robot)
         check_patch(patch, patch_grid)
         table = self.polar_table(patch_grid, camera_xy_robot)
-        decayed = self._decay(now_s, min_interval_s=self.params.decay_interval_s)
+        decayed = self._advance(T_world_robot)
         labels = _cast_checked(patch, table, float(self.params.obstacle_band_m))
         world_free, world_occ = fuse_patch_labels(
             self.log_odds, self.world_grid, labels, patch_grid, T_world_robot, self.params
@@ -810,7 +938,50 @@ class OccupancyGrid:
         """(rows, cols) float32 occupancy probabilities, 0.5 where unknown."""
         return log_odds_to_probability(self.log_odds)
 
+    def snapshot(self) -> SavedMap:
+        """A consistent read-only copy of the grid for saving, with the pending travel
+        (anchor to last pose) decayed and counted in the copy; the grid itself is not
+        changed. Take it in the thread that updates the grid; the copy may then be used
+        anywhere."""
+        pending_m = self._pending_travel_m()
+        factor = np.float32(decay_factor(pending_m, self.params.half_distance_m))
+        log_odds = self.log_odds * factor if factor != 1 else self.log_odds.copy()
+        return SavedMap(
+            log_odds=log_odds,
+            world_grid=self.world_grid,
+            free_threshold=self.params.free_threshold,
+            occupied_threshold=self.params.occupied_threshold,
+            T_world_robot=self._last_pose if self._last_pose is not None else Pose2D(),
+            travelled_m=self.travelled_m + pending_m,
+        )
+
+    def restore(self, snapshot: SavedMap) -> None:
+        """Replace the grid's state with ``snapshot``'s: its log-odds (clamped to this
+        grid's ``[clamp_min, clamp_max]``), its travel, and its robot pose as the anchor the
+        next update's travel is measured from. The caller places the robot at
+        ``snapshot.T_world_robot`` in the map's frame (or the jump counts as travel).
+
+        Raises
+        ------
+        ValueError
+            Not a `SavedMap`, or one of another world grid (the message names both);
+            the grid is then unchanged.
+        """
+        if not isinstance(snapshot, SavedMap):
+            raise ValueError(f"snapshot: expected a SavedMap, got {type(snapshot).__name__}")
+        if not same_geometry(snapshot.world_grid, self.world_grid):
+            raise ValueError(
+                f"snapshot: the map's grid is {describe_grid(snapshot.world_grid)} but this"
+                f" grid is {describe_grid(self.world_grid)}"
+            )
+        np.clip(snapshot.log_odds, self.params.clamp_min, self.params.clamp_max, out=self.log_odds)
+        self.travelled_m = snapshot.travelled_m
+        self._anchor = snapshot.T_world_robot
+        self._last_pose = snapshot.T_world_robot
+
     def reset(self) -> None:
-        """Forget all evidence and the decay clock (the ray table is kept)."""
+        """Forget all evidence, the travel and the poses (the ray table is kept)."""
         self.log_odds.fill(0.0)
-        self._last_decay_s = None
+        self.travelled_m = 0.0
+        self._anchor = None
+        self._last_pose = None

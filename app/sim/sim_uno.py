@@ -9,7 +9,9 @@ and streams ``TELEMETRY``. It drives a `MotorPlant` when given one, else an inte
 plant whose encoders integrate the PWM over time.
 
 It runs in its own thread, waiting with ``select()`` on the pty master, so it keeps its
-timing while the host's event loop is busy or frozen. Fault injection for tests:
+timing while the host's event loop is busy or frozen (but not while the host's whole
+interpreter stalls: the daemon therefore runs it in a process of its own,
+`app.sim.uno_process`). Fault injection for tests:
 `SimulatedUno.unplug`, `~SimulatedUno.replug`, `~SimulatedUno.go_silent`,
 `~SimulatedUno.send_garbage`, `~SimulatedUno.reset`, and ``banner_protocol_version=``
 for a wrong firmware.
@@ -32,9 +34,8 @@ from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 from types import TracebackType
-from typing import Self
+from typing import TYPE_CHECKING, Self
 
-from app.hardware.interfaces import MotorPlant
 from app.hardware.protocol import (
     DEADMAN_MS,
     FRAME_OVERHEAD,
@@ -52,6 +53,11 @@ from app.hardware.protocol import (
     parse_drive,
     parse_telemetry_period,
 )
+
+if TYPE_CHECKING:
+    # Only for annotations: the interfaces module pulls in numpy, which the Uno's own
+    # process (`app.sim.uno_process`) has no use for.
+    from app.hardware.interfaces import MotorPlant
 
 UNO_RX_BUFFER_BYTES = 64
 """The ATmega328P core's serial receive buffer: bytes beyond it are lost (an overrun)."""
@@ -125,6 +131,10 @@ class SimulatedUno:
         A little delay makes a host that does not wait for ACKs visible in
         `max_outstanding_commands` / `rx_overruns`.
     telemetry_period_ms : telemetry period at boot (the real firmware boots with 0).
+    on_command : optional, called (in the simulator's thread) with each valid frame
+        received, before its reply goes out.
+    keep_received : keep every valid frame received in `received` (for tests); a
+        long-running Uno turns it off, as the list grows with every command.
     """
 
     def __init__(
@@ -138,6 +148,8 @@ class SimulatedUno:
         deadman_ms: int = DEADMAN_MS,
         ack_delay_s: float = 0.0,
         telemetry_period_ms: int = 0,
+        on_command: Callable[[ReceivedCommand], None] | None = None,
+        keep_received: bool = True,
     ) -> None:
         if not 0 <= banner_protocol_version <= 255:
             raise ValueError(
@@ -154,6 +166,8 @@ class SimulatedUno:
         self.deadman_s = deadman_ms / 1000.0
         self.ack_delay_s = ack_delay_s
         self._boot_telemetry_period_ms = telemetry_period_ms
+        self._on_command = on_command
+        self._keep_received = keep_received
 
         self._lock = threading.RLock()  # guards what other threads read; plants may call back
         self._calls: queue.SimpleQueue[tuple[Callable[[], None], threading.Event]] = (
@@ -503,8 +517,12 @@ class SimulatedUno:
 
     def _handle(self, frame: Frame, now: float) -> bytes | None:
         """Act on one valid frame; return the reply bytes."""
-        with self._lock:
-            self.received.append(ReceivedCommand(now, frame))
+        command = ReceivedCommand(now, frame)
+        if self._keep_received:
+            with self._lock:
+                self.received.append(command)
+        if self._on_command is not None:
+            self._on_command(command)
         if frame.type not in _HOST_COMMANDS:
             # Like the firmware: counted with the garbage, since nothing acted on them.
             self.unknown_frames += 1

@@ -19,6 +19,7 @@ from fastapi.staticfiles import StaticFiles
 from app.mapping.calibration import CalibrationError
 from app.runtime import CommandRefusedError
 from app.web.auth import BearerAuth
+from app.web.body_limit import MAX_REQUEST_BODY_BYTES, BodyLimitMiddleware
 from app.web.context import WebContext
 from app.web.metrics import build_registry
 from app.web.routes import build_api_router
@@ -85,6 +86,9 @@ def create_app(
         version="1",
     )
     app.state.web = ctx
+    # Outside the routes, hence before the token check: FastAPI reads a route's whole
+    # body before its dependencies run.
+    app.add_middleware(BodyLimitMiddleware, max_body_bytes=MAX_REQUEST_BODY_BYTES)
 
     @app.exception_handler(CommandRefusedError)
     async def refused(request: Request, exc: CommandRefusedError) -> JSONResponse:

@@ -10,6 +10,7 @@ from __future__ import annotations
 
 import asyncio
 import math
+import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass
@@ -23,7 +24,7 @@ from numpy.typing import NDArray
 
 from app.mapping.frames import GroundGrid, Pose2D
 from app.mapping.occupancy import FREE, OCCUPIED
-from app.runtime import map_window, path_to_xy
+from app.runtime import crop_window
 from app.web.service import RobotService
 
 # BGR
@@ -77,20 +78,14 @@ def draw_map(
     service: RobotService, trail: PoseTrail, size_m: float, size_px: int
 ) -> MapPicture | None:
     """The map picture around the robot, or None without a mapper (no calibration)."""
-    mapper = service.mapper
-    if mapper is None:
+    snapshot = service.world_maps.peek()
+    if snapshot is None:
         return None
     pose = service.odometry.pose
-    grid = mapper.grid.world_grid
+    grid = snapshot.grid
     center = (pose.x_m, pose.y_m)
-    cells, window = map_window(
-        mapper.grid.log_odds,
-        grid,
-        center,
-        size_m,
-        free_threshold=mapper.grid.params.free_threshold,
-        occupied_threshold=mapper.grid.params.occupied_threshold,
-    )
+    rows, cols, window = crop_window(grid, center, size_m)
+    cells = snapshot.cells[rows, cols]
     px_per_m = size_px / size_m
     image = np.full((size_px, size_px, 3), UNKNOWN_BGR, dtype=np.uint8)
     # Paint the window's cells: scale the clipped raster and place it where its corner is.
@@ -122,14 +117,13 @@ def draw_map(
     if len(trail.points) >= 2:
         pts = world_to_px(np.array(trail.points), center, size_px, px_per_m)
         cv2.polylines(image, [pts], False, TRAIL_BGR, 2, cv2.LINE_AA)
-    frontier = service.frontier
-    path = path_to_xy(frontier, grid) if frontier is not None else None
+    path = snapshot.path_xy
     if path is not None and len(path) >= 2:
         cv2.polylines(
             image, [world_to_px(path, center, size_px, px_per_m)], False, PATH_BGR, 2, cv2.LINE_AA
         )
-    if frontier is not None and frontier.goal is not None:
-        goal = world_to_px(np.array([frontier.goal.xy]), center, size_px, px_per_m)[0]
+    if snapshot.goal_xy is not None:
+        goal = world_to_px(np.array([snapshot.goal_xy]), center, size_px, px_per_m)[0]
         cv2.drawMarker(image, (int(goal[0]), int(goal[1])), PATH_BGR, cv2.MARKER_STAR, 18, 2)
     robot_px = world_to_px(np.array([center]), center, size_px, px_per_m)[0]
     radius_px = max(4, round(service.config.mapping.robot_radius_m * px_per_m))
@@ -198,32 +192,31 @@ def map_router(service: RobotService, *, dependencies: Sequence[params.Depends] 
     @router.get("/api/map.json")
     async def map_json() -> dict[str, Any]:
         """The world grid's geometry and counts, the pose, the frontier goal and reason."""
-        mapper = service.mapper
+        snapshot = service.world_maps.peek()
         pose = service.odometry.pose
-        frontier = service.frontier
         out: dict[str, Any] = {
             "pose": {"x_m": pose.x_m, "y_m": pose.y_m, "theta_rad": pose.theta_rad},
             "frontier": None
-            if frontier is None
+            if snapshot is None
             else {
-                "goal_xy": list(frontier.goal.xy) if frontier.goal is not None else None,
-                "reason": frontier.reason,
-                "clusters": len(frontier.clusters),
+                "goal_xy": list(snapshot.goal_xy) if snapshot.goal_xy is not None else None,
+                "reason": snapshot.frontier_reason,
+                "clusters": snapshot.frontier_clusters,
             },
             "grid": None,
             "convention": "north-up: picture up = world +x, picture right = world -y",
         }
-        if mapper is not None:
-            grid = mapper.grid.world_grid
-            cells = await asyncio.to_thread(mapper.grid.classify)
+        if snapshot is not None:
+            grid = snapshot.grid
             out["grid"] = {
                 "x_max_m": grid.x_max_m,
                 "y_max_m": grid.y_max_m,
                 "cell_m": grid.cell_m,
                 "rows": grid.rows,
                 "cols": grid.cols,
-                "free_cells": int(np.count_nonzero(cells == FREE)),
-                "occupied_cells": int(np.count_nonzero(cells == OCCUPIED)),
+                "free_cells": snapshot.free_cells,
+                "occupied_cells": snapshot.occupied_cells,
+                "age_s": round(max(0.0, time.monotonic() - snapshot.done_s), 2),
             }
         return out
 

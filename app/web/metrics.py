@@ -10,6 +10,7 @@ process-global one, so two apps (tests) do not collide.
 from __future__ import annotations
 
 import itertools
+import math
 import time
 from collections import deque
 from collections.abc import Iterable, Sequence
@@ -133,6 +134,22 @@ class RuntimeCollector(Collector):
             [], self.latency_histogram.family_buckets(), self.latency_histogram.total
         )
         yield latency
+
+        lag = service.loop_lag
+        loop_lag = HistogramMetricFamily(
+            "floornav_event_loop_lag_seconds",
+            "How much later than scheduled the event loop woke a timer: the delay every "
+            "callback (drive commands, Uno ACKs, requests) suffered at that moment",
+        )
+        loop_lag.add_metric(
+            [],
+            [
+                (f"{bound:g}" if math.isfinite(bound) else "+Inf", float(count))
+                for bound, count in lag.cumulative_buckets()
+            ],
+            lag.sum_s,
+        )
+        yield loop_lag
 
         yield GaugeMetricFamily(
             "floornav_fps",

@@ -38,6 +38,7 @@ from app.web.schemas import (
     CommandResponse,
     EstopRequest,
     EstopResetResponse,
+    FaultResetResponse,
     TeleopReleaseRequest,
     TeleopRequest,
     check_board_pattern,
@@ -189,6 +190,17 @@ def build_api_router(ctx: WebContext) -> APIRouter:
         """Clear a latched e-stop; ``was_estopped`` says whether one was latched."""
         was = service.reset_estop()
         return EstopResetResponse(state=service.state, was_estopped=was)
+
+    @router.post(
+        "/api/fault/reset", dependencies=write, tags=["control"], responses=ERROR_RESPONSES
+    )
+    async def reset_fault() -> FaultResetResponse:
+        """Clear a latched fault (a cause that kept repeating, or a device gone too long)
+        once its cause is fixed; autonomy stays stopped until started again."""
+        fault = service.reset_fault()
+        return FaultResetResponse(
+            state=service.state, cleared=fault.reason if fault is not None else None
+        )
 
     @router.post(
         "/api/teleop",

@@ -115,6 +115,11 @@ class EstopResetResponse(CommandResponse):
     was_estopped: bool
 
 
+class FaultResetResponse(CommandResponse):
+    cleared: str | None
+    """The latched fault's reason that was cleared, or null when none was latched."""
+
+
 class ErrorResponse(BaseModel):
     detail: str
     errors: list[dict[str, Any]] | None = None

@@ -21,10 +21,9 @@ from app.control.kinematics import WheelOdometry
 from app.control.steering import SteeringDecision
 from app.hardware.serial_link import LinkStats
 from app.mapping.calibration import FloorCalibration, Intrinsics
-from app.mapping.frontiers import FrontierSearch
-from app.mapping.ground_map import GroundMapper
-from app.messages import DriveMsg, FloorMsg, FrameMsg, MapMsg, State
+from app.messages import DriveMsg, FloorMsg, FrameMsg, MapMsg, State, WorldMapMsg
 from app.runtime import Counters
+from app.runtime.stops import StopEvent
 
 CalibrationFit = Callable[[NDArray[np.uint8]], FloorCalibration]
 CalibrationSave = Callable[[FloorCalibration], None]
@@ -48,6 +47,21 @@ class LinkView(Protocol):
 
     @property
     def stats(self) -> LinkStats: ...
+
+
+class LoopLagView(Protocol):
+    """The event loop's lag as the metrics read it (`app.loop_lag.LoopLagMonitor`)."""
+
+    @property
+    def count(self) -> int:
+        """Lags ever recorded."""
+
+    @property
+    def sum_s(self) -> float:
+        """Their sum in seconds."""
+
+    def cumulative_buckets(self) -> list[tuple[float, int]]:
+        """``(upper bound in seconds, lags <= it)`` per bucket, ``inf`` last."""
 
 
 class MuxView(Protocol):
@@ -98,6 +112,10 @@ class RobotService(Protocol):
         """Latencies ever appended to `latencies` (see `StageTimings.totals`)."""
 
     @property
+    def loop_lag(self) -> LoopLagView:
+        """How late the event loop wakes (`app.loop_lag`)."""
+
+    @property
     def mux(self) -> MuxView: ...
 
     @property
@@ -111,10 +129,10 @@ class RobotService(Protocol):
     def calibration(self) -> FloorCalibration | None: ...
 
     @property
-    def frontier(self) -> FrontierSearch | None: ...
-
-    @property
-    def mapper(self) -> GroundMapper | None: ...
+    def world_maps(self) -> LatestSlot[WorldMapMsg]:
+        """The whole map, the pose and the frontier path, at most 2 Hz (read-only copies:
+        readers never touch the mapper's arrays). Nothing published without a floor
+        calibration."""
 
     @property
     def odometry(self) -> WheelOdometry: ...
@@ -134,6 +152,9 @@ class RobotService(Protocol):
 
     def reset_estop(self) -> bool:
         """Clear a latched e-stop; True if one was latched."""
+
+    def reset_fault(self) -> StopEvent | None:
+        """Clear a latched fault; returns it (None when none was latched)."""
 
     def teleop(
         self, driver: str, v_m_s: float, omega_rad_s: float, *, take_over: bool = False

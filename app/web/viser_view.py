@@ -32,7 +32,7 @@ from numpy.typing import NDArray
 from app.mapping.frames import GroundGrid, Pose2D
 from app.mapping.occupancy import FREE, OCCUPIED
 from app.perception.pipeline import trapezoid_from_config
-from app.runtime import path_to_xy, percentiles_ms
+from app.runtime import percentiles_ms
 
 if TYPE_CHECKING:
     from app.mapping.calibration import FloorCalibration
@@ -257,13 +257,13 @@ class ViserView:
         if server is None:
             return
         with self._timed("map"):
-            mapper = self.service.mapper
-            if mapper is None:  # no floor calibration: no map
+            snapshot = self.service.world_maps.peek()
+            if snapshot is None:  # no floor calibration (or no frame mapped yet): no map
                 if self._map_handle is not None:
                     self._map_handle.visible = False
                 return
-            cells = mapper.grid.classify()
-            grid = mapper.grid.world_grid
+            cells = snapshot.cells
+            grid = snapshot.grid
             key = (grid.x_max_m, grid.y_max_m, grid.cell_m, grid.rows, grid.cols)
             if self._map_handle is None or key != self._map_key:
                 if self._map_handle is not None:
@@ -288,12 +288,10 @@ class ViserView:
                 self.map_updates += 1
             self.map_bytes_last = len(self._map_handle._data)
             self._last_cells = cells
-            self._update_path(grid)
+            self._update_path(snapshot.path_xy)
 
-    def _update_path(self, grid: GroundGrid) -> None:
+    def _update_path(self, path: NDArray[np.float64] | None) -> None:
         assert self._path is not None
-        frontier = self.service.frontier
-        path = path_to_xy(frontier, grid) if frontier is not None else None
         if path is None or len(path) < 2:
             self._path.visible = False
             return
@@ -333,12 +331,12 @@ class ViserView:
 
     def _update_goal(self) -> None:
         assert self._goal is not None
-        frontier = self.service.frontier
-        goal = frontier.goal if frontier is not None else None
-        if goal is None:
+        snapshot = self.service.world_maps.peek()
+        goal_xy = snapshot.goal_xy if snapshot is not None else None
+        if goal_xy is None:
             self._goal.visible = False
             return
-        self._goal.position = (float(goal.xy[0]), float(goal.xy[1]), 0.08)
+        self._goal.position = (float(goal_xy[0]), float(goal_xy[1]), 0.08)
         self._goal.visible = True
 
     def _update_trail(self, pose: Pose2D) -> None:

@@ -1,4 +1,4 @@
-"""Cameras: replay of videos and image folders, a missing webcam, the simulated camera."""
+"""Cameras: replay of videos and image folders, a missing webcam."""
 
 from __future__ import annotations
 
@@ -10,11 +10,8 @@ import cv2
 import numpy as np
 import pytest
 
-from app.hardware.cameras import OpenCVCamera, ReplayCamera, SimCamera
+from app.hardware.cameras import OpenCVCamera, ReplayCamera
 from app.hardware.interfaces import DeviceState
-from app.mapping.frames import Pose2D
-from app.sim.render import CameraModel, Renderer
-from app.sim.world import parse_world
 
 
 def _wait(predicate: Callable[[], bool], timeout_s: float = 5.0) -> bool:
@@ -111,40 +108,6 @@ def test_opencv_camera_missing_device_fails_and_retries() -> None:
         assert camera.latest(10.0) is None
     finally:
         camera.close()
-    assert camera.status().state == DeviceState.DISCONNECTED
-
-
-def test_sim_camera_frames_with_truth() -> None:
-    world = parse_world("[start]\nx_m = 1.0\ny_m = 1.0\n[[rooms]]\nrect_m = [0, 0, 3, 2]\n")
-    renderer = Renderer(world, CameraModel(width_px=160, height_px=120, fx_px=125, fy_px=125))
-    with SimCamera(renderer, lambda: world.start_pose, fps=100.0) as camera:
-        assert _wait(lambda: camera.latest_with_truth(1.0) is not None)
-        pair = camera.latest_with_truth(1.0)
-        assert pair is not None
-        frame, truth = pair
-        assert frame.image is truth.image and truth.pose == world.start_pose
-        assert frame.image.shape == (120, 160, 3) and truth.floor_mask.any()
-        assert camera.status().state == DeviceState.CONNECTED
-    time.sleep(0.02)
-    assert camera.latest(0.01) is None  # stale frames are refused
-
-
-def test_sim_camera_on_demand_renders_the_current_pose() -> None:
-    world = parse_world("[start]\nx_m = 1.0\ny_m = 1.0\n[[rooms]]\nrect_m = [0, 0, 3, 2]\n")
-    renderer = Renderer(world, CameraModel(width_px=160, height_px=120, fx_px=125, fy_px=125))
-    poses = [world.start_pose, Pose2D(2.0, 1.0, 0.0)]
-    camera = SimCamera(renderer, lambda: poses[0], fps=None)
-    assert camera.latest(1.0) is None  # not open
-    with camera:
-        first = camera.latest_with_truth(1.0)
-        poses[0] = poses[1]
-        second = camera.latest_with_truth(1.0)
-        assert first is not None and second is not None
-        assert first[1].pose == world.start_pose and second[1].pose == poses[1]
-        assert second[0].seq == first[0].seq + 1
-        # Closer to the wall x = 3: less floor in view.
-        assert second[1].floor_mask.sum() < first[1].floor_mask.sum()
-        assert camera.status().state == DeviceState.CONNECTED
     assert camera.status().state == DeviceState.DISCONNECTED
 
 

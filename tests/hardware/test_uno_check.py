@@ -9,7 +9,7 @@ import pytest
 
 from app.cli import main
 from app.config import SerialConfig
-from app.hardware.uno_backends import link_config
+from app.hardware.link_settings import link_config
 
 
 def test_link_config_follows_the_serial_section() -> None:

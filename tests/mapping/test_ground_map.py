@@ -3,6 +3,8 @@ synthetic calibrated camera."""
 
 from __future__ import annotations
 
+import math
+from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
@@ -11,7 +13,7 @@ from app.config import CameraConfig, MappingConfig
 from app.mapping.calibration import apply_homography, homography_from_point_pairs
 from app.mapping.frames import FLOOR, NOT_FLOOR, Pose2D
 from app.mapping.ground_map import GroundMapper
-from app.mapping.occupancy import FREE, OCCUPIED, UNKNOWN
+from app.mapping.occupancy import FREE, OCCUPIED, UNKNOWN, OccupancyGrid
 
 from .test_calibration import HEIGHT, WIDTH, camera_homography
 
@@ -121,3 +123,40 @@ def test_parallax_is_off_for_frames_with_lens_distortion() -> None:
         replace(mapper.calibration, intrinsics=intrinsics), mapper.mapping, CameraConfig()
     )
     assert distorted.parallax is None
+
+
+def test_a_standing_mapper_keeps_its_map_for_ten_minutes() -> None:
+    mapper = make_mapper()  # the default configuration's decay
+    reference = OccupancyGrid(
+        mapper.grid.world_grid, replace(mapper.grid.params, half_distance_m=math.inf)
+    )
+    pose = Pose2D(0.3, -0.2, 0.4)
+    mask = wall_mask(mapper, 1.2)
+    for k in range(3):
+        update = mapper.update(mask, pose, now_s=0.1 * k)
+        reference.update(update.patch, mapper.birdseye.grid, pose, mapper.camera_xy_robot)
+    classes = mapper.grid.classify()
+    # The robot waits (stopped, faulted) while frames keep coming, one a second.
+    for second in range(1, 601):
+        update = mapper.update(mask, pose, now_s=float(second))
+        assert update.summary.decayed is False
+        reference.update(update.patch, mapper.birdseye.grid, pose, mapper.camera_xy_robot)
+    np.testing.assert_array_equal(mapper.grid.log_odds, reference.log_odds)
+    np.testing.assert_array_equal(mapper.grid.classify(), classes)
+    assert mapper.grid.travelled_m == 0.0
+
+
+def test_restore_puts_a_snapshot_into_a_fresh_mapper() -> None:
+    mapper = make_mapper()
+    for k in range(3):
+        mapper.update(wall_mask(mapper, 1.2), Pose2D(0.1 * k, 0.0, 0.05 * k), now_s=0.1 * k)
+    snapshot = mapper.snapshot()
+    fresh = make_mapper()
+    fresh.restore(snapshot)
+    np.testing.assert_array_equal(fresh.grid.log_odds, mapper.grid.log_odds)
+    assert fresh.snapshot().T_world_robot == Pose2D(0.2, 0.0, 0.1)
+    assert fresh.grid.travelled_m == mapper.grid.travelled_m > 0
+    pose = Pose2D(0.2, 0.0, 0.1)
+    restored_goal, goal = fresh.frontiers(pose).goal, mapper.frontiers(pose).goal
+    assert restored_goal is not None and goal is not None
+    assert restored_goal.xy == goal.xy

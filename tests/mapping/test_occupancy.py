@@ -1,8 +1,10 @@
-"""Occupancy grid: ray casting in the patch, world fusion, clamping, decay, bad inputs."""
+"""Occupancy grid: ray casting in the patch, world fusion, clamping, decay by travel,
+snapshots and restore, bad inputs."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import replace
 
 import numpy as np
 import pytest
@@ -19,10 +21,12 @@ from app.mapping.occupancy import (
     UNKNOWN,
     OccupancyGrid,
     OccupancyParams,
+    SavedMap,
     build_polar_table,
     cast_rays,
     decay_factor,
     fuse_patch_labels,
+    travel_m,
 )
 
 # A 1 m x 1 m patch of 1 cm cells in front of a camera at the robot's origin: row i
@@ -31,7 +35,7 @@ PATCH = GroundGrid.covering(x_min_m=0.0, x_max_m=1.0, y_min_m=-0.5, y_max_m=0.5,
 CAMERA = (0.0, 0.0)
 # World: x -1..2, y -1..1 in 5 cm cells; row r covers x in [2 - (r + 1) / 20, 2 - r / 20).
 WORLD = GroundGrid.covering(x_min_m=-1.0, x_max_m=2.0, y_min_m=-1.0, y_max_m=1.0, cell_m=0.05)
-NO_DECAY = OccupancyParams(obstacle_band_m=0.025, half_life_s=math.inf)
+NO_DECAY = OccupancyParams(obstacle_band_m=0.025, half_distance_m=math.inf)
 
 
 def wall_patch(wall_x_m: float = 0.6) -> NDArray[np.uint8]:
@@ -51,7 +55,7 @@ def test_wall_line_free_before_occupied_band_at_nothing_behind() -> None:
 
 def test_wall_line_in_the_world_is_cell_exact() -> None:
     grid = OccupancyGrid(WORLD, NO_DECAY)
-    summary = grid.update(wall_patch(), PATCH, Pose2D(), CAMERA, 0.0)
+    summary = grid.update(wall_patch(), PATCH, Pose2D(), CAMERA)
     expected = np.zeros(WORLD.shape, np.float32)
     # Patch y in [-0.5, 0.5) -> world cols 10..29; x in [0.60, 0.65) -> row 27 (holds the
     # band and 2 cm of smear: occupied wins); x in [0, 0.6) -> rows 28..39.
@@ -63,14 +67,14 @@ def test_wall_line_in_the_world_is_cell_exact() -> None:
     classes = grid.classify()
     assert classes.dtype == np.int8
     assert (classes[27, 10:30] == OCCUPIED).all() and (classes[28:40, 10:30] == UNKNOWN).all()
-    grid.update(wall_patch(), PATCH, Pose2D(), CAMERA, 0.0)
+    grid.update(wall_patch(), PATCH, Pose2D(), CAMERA)
     assert (grid.classify()[28:40, 10:30] == FREE).all()  # two floor sightings make free
 
 
 def test_unseen_never_updates_and_does_not_stop_rays() -> None:
     grid = OccupancyGrid(WORLD, NO_DECAY)
     unseen = np.full(PATCH.shape, UNSEEN, np.uint8)
-    summary = grid.update(unseen, PATCH, Pose2D(0.3, -0.2, 0.5), CAMERA, 0.0)
+    summary = grid.update(unseen, PATCH, Pose2D(0.3, -0.2, 0.5), CAMERA)
     assert not grid.log_odds.any()
     assert (summary.patch_free, summary.world_free, summary.world_occupied) == (0, 0, 0)
 
@@ -81,7 +85,7 @@ def test_unseen_never_updates_and_does_not_stop_rays() -> None:
     assert (labels[patch == UNSEEN] == PATCH_UNTOUCHED).all()
     assert (labels[70:, :50] == PATCH_FREE).all() and (labels[40:60, :50] == PATCH_FREE).all()
     assert (labels[38:40, :50] == PATCH_OCCUPIED).all()
-    grid.update(patch, PATCH, Pose2D(), CAMERA, 0.0)
+    grid.update(patch, PATCH, Pose2D(), CAMERA)
     assert not grid.log_odds[:, 20:].any()  # world y < 0
     assert not grid.log_odds[32:34].any()  # world x in [0.30, 0.40)
     assert (grid.log_odds[34:40, 10:20] < 0).all() and (grid.log_odds[28:32, 10:20] < 0).all()
@@ -97,7 +101,7 @@ def test_fov_wedge_is_respected() -> None:
 
     grid = OccupancyGrid(WORLD, NO_DECAY)
     pose = Pose2D(0.2, 0.1, 0.3)
-    grid.update(patch, PATCH, pose, CAMERA, 0.0)
+    grid.update(patch, PATCH, pose, CAMERA)
     hit = WORLD.cell_of(pose.apply(np.column_stack((x[wedge], y[wedge]))))
     expected = np.zeros(WORLD.shape, bool)
     expected[hit[:, 0], hit[:, 1]] = True
@@ -134,7 +138,7 @@ def test_pose_transform_is_cell_exact() -> None:
 
     # The same through update(): an all-floor patch seen from its near edge.
     grid = OccupancyGrid(world, NO_DECAY)
-    grid.update(np.full(patch_grid.shape, FLOOR, np.uint8), patch_grid, pose, (0.0, 0.0), 0.0)
+    grid.update(np.full(patch_grid.shape, FLOOR, np.uint8), patch_grid, pose, (0.0, 0.0))
     expected = np.zeros(world.shape, np.float32)
     expected[75:85, 50:60] = np.float32(-0.4)
     np.testing.assert_array_equal(grid.log_odds, expected)
@@ -155,7 +159,7 @@ def test_many_patch_cells_on_one_world_cell_give_one_update_occupied_wins() -> N
 def test_log_odds_are_clamped() -> None:
     grid = OccupancyGrid(WORLD, NO_DECAY)
     for _ in range(12):
-        grid.update(wall_patch(), PATCH, Pose2D(), CAMERA, 0.0)
+        grid.update(wall_patch(), PATCH, Pose2D(), CAMERA)
     assert grid.log_odds.max() == np.float32(3.5)
     assert grid.log_odds.min() == np.float32(-2.0)
     assert (grid.log_odds[28:40, 10:30] == np.float32(-2.0)).all()
@@ -164,32 +168,190 @@ def test_log_odds_are_clamped() -> None:
     assert probabilities[0, 0] == 0.5 and probabilities[27, 10] > 0.97
 
 
-def test_decay_halves_evidence_after_one_half_life() -> None:
-    params = OccupancyParams(half_life_s=30.0, decay_interval_s=0.2)
-    grid = OccupancyGrid(WORLD, params)
-    assert grid.update(wall_patch(), PATCH, Pose2D(), CAMERA, 100.0).decayed is False
+def test_standing_still_for_ten_minutes_keeps_the_map_exactly() -> None:
+    # The failure users saw: a robot waiting after a fault lost its map to the clock.
+    # Frames keep coming (10 a second for 10 minutes) at the same pose.
+    grid = OccupancyGrid(WORLD, OccupancyParams(obstacle_band_m=0.025))
+    reference = OccupancyGrid(WORLD, NO_DECAY)
+    pose = Pose2D(0.2, -0.1, 0.3)
+    for target in (grid, reference):
+        target.update(wall_patch(), PATCH, pose, CAMERA)
+        target.update(wall_patch(), PATCH, pose, CAMERA)
     before = grid.log_odds.copy()
-    # Within the lazy interval: no global multiply yet.
+    classes = grid.classify()
+    assert (classes == FREE).any() and (classes == OCCUPIED).any()
     unseen = np.full(PATCH.shape, UNSEEN, np.uint8)
-    assert grid.update(unseen, PATCH, Pose2D(), CAMERA, 100.1).decayed is False
+    for _ in range(10 * 60 * 10):
+        assert grid.update(unseen, PATCH, pose, CAMERA).decayed is False
     np.testing.assert_array_equal(grid.log_odds, before)
-    # One half-life after the clock started: exactly half.
-    assert grid.update(unseen, PATCH, Pose2D(), CAMERA, 130.0).decayed is True
-    np.testing.assert_array_equal(grid.log_odds, before / 2)
-    assert grid.decay_to(190.0) is True  # two more half-lives
-    np.testing.assert_array_equal(grid.log_odds, before / 8)
-    assert decay_factor(15.0, 30.0) == pytest.approx(math.sqrt(0.5))
-    with pytest.raises(ValueError, match="backwards"):
-        grid.decay_to(100.0)
+    assert grid.travelled_m == 0.0
+    # Seeing the same scene again only adds evidence, exactly as without any decay.
+    for target in (grid, reference):
+        for _ in range(20):
+            target.update(wall_patch(), PATCH, pose, CAMERA)
+    np.testing.assert_array_equal(grid.log_odds, reference.log_odds)
+
+
+def test_driving_n_half_distances_halves_the_evidence_n_times() -> None:
+    params = OccupancyParams(obstacle_band_m=0.025, half_distance_m=1.0, decay_step_m=0.05)
+    grid = OccupancyGrid(WORLD, params)
+    grid.update(wall_patch(), PATCH, Pose2D(), CAMERA)
+    before = grid.log_odds.copy()
+    unseen = np.full(PATCH.shape, UNSEEN, np.uint8)
+    # Whole half-distances at a time: the factor is exactly 0.5 per metre.
+    for n in (1, 2, 3):
+        assert grid.update(unseen, PATCH, Pose2D(float(n), 0.0, 0.0), CAMERA).decayed is True
+        np.testing.assert_array_equal(grid.log_odds, before / 2**n)
+    assert grid.travelled_m == 3.0
+
+    # Small steps (below the lazy step, so decays are batched) give the same result. The
+    # numbers are binary fractions, so every distance is exact: 1/64 m steps, 1/16 m decay
+    # step, 1 m out along y and back.
+    params = replace(params, decay_step_m=1 / 16)
+    grid = OccupancyGrid(WORLD, params)
+    grid.update(wall_patch(), PATCH, Pose2D(), CAMERA)
+    assert grid.update(unseen, PATCH, Pose2D(0.0, 1 / 64, 0.0), CAMERA).decayed is False
+    np.testing.assert_array_equal(grid.log_odds, before)  # pending, below the step
+    np.testing.assert_allclose(grid.snapshot().log_odds, before * 0.5 ** (1 / 64), rtol=1e-6)
+    decays = 0
+    for k in [*range(2, 65), *range(63, -1, -1)]:
+        decays += grid.update(unseen, PATCH, Pose2D(0.0, k / 64, 0.0), CAMERA).decayed
+    assert decays == 32 and grid.travelled_m == 2.0  # path length, not displacement
+    np.testing.assert_allclose(grid.log_odds, before / 4, rtol=1e-5)
+    assert decay_factor(0.5, 1.0) == pytest.approx(math.sqrt(0.5))
+
+
+def test_a_jittering_pose_never_adds_up_to_travel() -> None:
+    # Encoder ticks of a vibrating robot, or estimator noise: the pose wanders within a
+    # few centimetres and degrees of where the robot stands, 30 times a second.
+    grid = OccupancyGrid(WORLD, OccupancyParams(obstacle_band_m=0.025))
+    grid.update(wall_patch(), PATCH, Pose2D(), CAMERA)
+    before = grid.log_odds.copy()
+    unseen = np.full(PATCH.shape, UNSEEN, np.uint8)
+    rng = np.random.default_rng(7)
+    for dx, dy, dtheta in rng.uniform(-1, 1, (30 * 60, 3)) * (0.02, 0.02, 0.2):
+        assert grid.update(unseen, PATCH, Pose2D(dx, dy, dtheta), CAMERA).decayed is False
+    np.testing.assert_array_equal(grid.log_odds, before)
+    assert grid.travelled_m == 0.0
+    # Once the robot really moves off, the travel is counted from where it stood.
+    assert grid.update(unseen, PATCH, Pose2D(1.0, 0.0, 0.0), CAMERA).decayed is True
+    assert grid.travelled_m == pytest.approx(1.0)
+
+
+def test_turning_in_place_counts_as_wheel_travel() -> None:
+    assert travel_m(Pose2D(), Pose2D(0.3, 0.4, 0.0), 0.1) == pytest.approx(0.5)
+    assert travel_m(Pose2D(), Pose2D(0.0, 0.0, math.pi / 2), 0.1) == pytest.approx(0.05 * math.pi)
+    # An arc counts once: the larger of driving and turning.
+    assert travel_m(Pose2D(), Pose2D(0.1, 0.0, 0.2), 0.1) == pytest.approx(0.1)
+    # Heading differences wrap: 3.1 -> -3.1 rad is a 0.083 rad turn, not 6.2 rad.
+    wrapped = travel_m(Pose2D(0, 0, 3.1), Pose2D(0, 0, -3.1), 1.0)
+    assert wrapped == pytest.approx(2 * math.pi - 6.2)
+
+    params = OccupancyParams(half_distance_m=1.0, turn_radius_m=0.1, decay_step_m=0.0)
+    grid = OccupancyGrid(WORLD, params)
+    grid.update(wall_patch(), PATCH, Pose2D(), CAMERA)
+    before = grid.log_odds.copy()
+    unseen = np.full(PATCH.shape, UNSEEN, np.uint8)
+    for k in range(1, 5):  # one full spin turn in quarter turns
+        grid.update(unseen, PATCH, Pose2D(0.0, 0.0, k * math.pi / 2), CAMERA)
+    assert grid.travelled_m == pytest.approx(0.2 * math.pi)
+    np.testing.assert_allclose(grid.log_odds, before * 0.5 ** (0.2 * math.pi), rtol=1e-5)
+
+    spin_free = OccupancyGrid(WORLD, OccupancyParams(half_distance_m=1.0, turn_radius_m=0.0))
+    spin_free.update(wall_patch(), PATCH, Pose2D(), CAMERA)
+    for k in range(1, 5):
+        spin_free.update(unseen, PATCH, Pose2D(0.0, 0.0, k * math.pi / 2), CAMERA)
+    np.testing.assert_array_equal(spin_free.log_odds, before)
+
+
+def test_snapshot_is_a_read_only_copy_with_the_pending_decay_applied() -> None:
+    params = OccupancyParams(obstacle_band_m=0.025, half_distance_m=1.0, decay_step_m=0.5)
+    grid = OccupancyGrid(WORLD, params)
+    grid.update(wall_patch(), PATCH, Pose2D(), CAMERA)
+    before = grid.log_odds.copy()
+    unseen = np.full(PATCH.shape, UNSEEN, np.uint8)
+    grid.update(unseen, PATCH, Pose2D(0.25, 0.0, 0.0), CAMERA)  # pending, below the step
+    np.testing.assert_array_equal(grid.log_odds, before)
+    snapshot = grid.snapshot()
+    np.testing.assert_allclose(snapshot.log_odds, before * 0.5**0.25, rtol=1e-6)
+    np.testing.assert_array_equal(grid.log_odds, before)  # the grid itself is unchanged
+    assert snapshot.T_world_robot == Pose2D(0.25, 0.0, 0.0)
+    assert snapshot.travelled_m == 0.25
+    assert snapshot.world_grid == WORLD
+    assert (snapshot.free_threshold, snapshot.occupied_threshold) == (-0.5, 0.5)
+    assert not snapshot.log_odds.flags.writeable
+    grid.update(wall_patch(), PATCH, Pose2D(0.25, 0.0, 0.0), CAMERA)
+    np.testing.assert_allclose(snapshot.log_odds, before * 0.5**0.25, rtol=1e-6)  # a copy
+    np.testing.assert_array_equal(snapshot.classify(), grid_classes(snapshot.log_odds))
+    assert OccupancyGrid(WORLD).snapshot().T_world_robot == Pose2D()  # never updated
+
+
+def grid_classes(log_odds: NDArray[np.float32]) -> NDArray[np.int8]:
+    grid = OccupancyGrid(WORLD)
+    grid.log_odds[:] = log_odds
+    return grid.classify()
+
+
+def test_restore_continues_the_map_and_its_travel() -> None:
+    params = OccupancyParams(obstacle_band_m=0.025, half_distance_m=1.0, decay_step_m=0.0)
+    grid = OccupancyGrid(WORLD, params)
+    pose = Pose2D(0.1, 0.2, 0.3)
+    grid.update(wall_patch(), PATCH, pose, CAMERA)
+    snapshot = grid.snapshot()
+
+    fresh = OccupancyGrid(WORLD, params)
+    fresh.restore(snapshot)
+    np.testing.assert_array_equal(fresh.log_odds, snapshot.log_odds)
+    assert fresh.log_odds.flags.writeable
+    unseen = np.full(PATCH.shape, UNSEEN, np.uint8)
+    # Travel is counted from the saved pose: standing there decays nothing...
+    assert fresh.update(unseen, PATCH, pose, CAMERA).decayed is False
+    np.testing.assert_array_equal(fresh.log_odds, snapshot.log_odds)
+    # ...and one half-distance from it halves the evidence.
+    fresh.update(unseen, PATCH, Pose2D(1.1, 0.2, 0.3), CAMERA)
+    np.testing.assert_array_equal(fresh.log_odds, snapshot.log_odds / 2)
+    assert fresh.travelled_m == pytest.approx(1.0)
+
+    # Evidence beyond this grid's clamp is clamped.
+    tight_params = OccupancyParams(clamp_min=-0.3, clamp_max=0.6, free_threshold=-0.2)
+    tight = OccupancyGrid(WORLD, tight_params)
+    tight.restore(snapshot)
+    assert tight.log_odds.max() == np.float32(0.6) and tight.log_odds.min() == np.float32(-0.3)
+
+    # Another world grid is refused, naming both, and nothing changes.
+    other = GroundGrid.covering(x_min_m=-1.0, x_max_m=2.0, y_min_m=-1.0, y_max_m=1.0, cell_m=0.1)
+    target = OccupancyGrid(other)
+    target.log_odds[3, 4] = 1.0
+    with pytest.raises(ValueError, match=r"60 x 40 cells of 0.05 m.*30 x 20 cells of 0.1 m"):
+        target.restore(snapshot)
+    assert target.log_odds[3, 4] == 1.0 and np.count_nonzero(target.log_odds) == 1
+    with pytest.raises(ValueError, match="SavedMap"):
+        target.restore(grid)  # type: ignore[arg-type]
+
     grid.reset()
+    assert grid.travelled_m == 0.0 and grid.snapshot().T_world_robot == Pose2D()
     assert not grid.log_odds.any()
-    grid.decay_to(5.0)  # the clock restarts after reset()
+
+
+def test_snapshots_refuse_bad_contents() -> None:
+    good = OccupancyGrid(WORLD).snapshot()
+    fields = dict(
+        world_grid=WORLD, free_threshold=-0.5, occupied_threshold=0.5, T_world_robot=Pose2D()
+    )
+    with pytest.raises(ValueError, match="float32 of shape"):
+        SavedMap(log_odds=np.zeros((2, 2), np.float32), travelled_m=0.0, **fields)
+    nan = np.array(good.log_odds)
+    nan[1, 1] = np.nan
+    with pytest.raises(ValueError, match="1 cells are not finite"):
+        SavedMap(log_odds=nan, travelled_m=0.0, **fields)
+    with pytest.raises(ValueError, match="travelled_m"):
+        SavedMap(log_odds=np.array(good.log_odds), travelled_m=-1.0, **fields)
 
 
 def test_footprint_is_cleared_when_enabled() -> None:
     grid = OccupancyGrid(WORLD, OccupancyParams(footprint_free_radius_m=0.06))
     unseen = np.full(PATCH.shape, UNSEEN, np.uint8)
-    summary = grid.update(unseen, PATCH, Pose2D(0.0, 0.0, 1.0), CAMERA, 0.0)
+    summary = grid.update(unseen, PATCH, Pose2D(0.0, 0.0, 1.0), CAMERA)
     # World cells with centres within 6 cm of the origin: (+-0.025, +-0.025) only.
     assert summary.world_free == 4
     cleared = np.argwhere(grid.log_odds < 0).tolist()
@@ -213,31 +375,31 @@ def test_bad_inputs_raise_clear_value_errors() -> None:
     grid = OccupancyGrid(WORLD)
     good = wall_patch()
     with pytest.raises(ValueError, match="shape"):
-        grid.update(good[:, :-1], PATCH, Pose2D(), CAMERA, 0.0)
+        grid.update(good[:, :-1], PATCH, Pose2D(), CAMERA)
     with pytest.raises(ValueError, match="uint8"):
-        grid.update(good.astype(np.float32), PATCH, Pose2D(), CAMERA, 0.0)
+        grid.update(good.astype(np.float32), PATCH, Pose2D(), CAMERA)
     bad_values = good.copy()
     bad_values[0, 0] = 7
     with pytest.raises(ValueError, match="1 cells are not FLOOR"):
-        grid.update(bad_values, PATCH, Pose2D(), CAMERA, 0.0)
+        grid.update(bad_values, PATCH, Pose2D(), CAMERA)
     with pytest.raises(ValueError, match="T_world_robot"):
-        grid.update(good, PATCH, Pose2D(float("nan"), 0.0, 0.0), CAMERA, 0.0)
+        grid.update(good, PATCH, Pose2D(float("nan"), 0.0, 0.0), CAMERA)
     with pytest.raises(ValueError, match="camera_xy_robot"):
-        grid.update(good, PATCH, Pose2D(), (0.0, float("inf")), 0.0)
-    with pytest.raises(ValueError, match="now_s"):
-        grid.update(good, PATCH, Pose2D(), CAMERA, float("nan"))
+        grid.update(good, PATCH, Pose2D(), (0.0, float("inf")))
     negative = GroundGrid(1.0, 0.5, -0.01, 100, 100)
     with pytest.raises(ValueError, match=r"patch_grid: cell size must be finite and > 0"):
-        grid.update(good, negative, Pose2D(), CAMERA, 0.0)
+        grid.update(good, negative, Pose2D(), CAMERA)
     with pytest.raises(ValueError, match=r"world_grid: cell size"):
         OccupancyGrid(GroundGrid(1.0, 1.0, -0.05, 10, 10))
     with pytest.raises(ValueError, match="larger than the world"):
         coarse = GroundGrid.covering(x_min_m=0, x_max_m=1, y_min_m=-0.5, y_max_m=0.5, cell_m=0.1)
-        grid.update(np.full(coarse.shape, FLOOR, np.uint8), coarse, Pose2D(), CAMERA, 0.0)
+        grid.update(np.full(coarse.shape, FLOOR, np.uint8), coarse, Pose2D(), CAMERA)
     with pytest.raises(ValueError, match="log_odds_free"):
         OccupancyParams(log_odds_free=0.4)
-    with pytest.raises(ValueError, match="half_life_s"):
-        OccupancyParams(half_life_s=0.0)
+    with pytest.raises(ValueError, match="half_distance_m"):
+        OccupancyParams(half_distance_m=0.0)
+    with pytest.raises(ValueError, match="turn_radius_m"):
+        OccupancyParams(turn_radius_m=-0.1)
     with pytest.raises(ValueError, match="obstacle_band_m"):
         OccupancyParams(obstacle_band_m=float("nan"))
     with pytest.raises(ValueError, match="size_m"):

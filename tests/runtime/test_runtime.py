@@ -113,7 +113,7 @@ class StallingSegmenter:
         return self.inner.segment(image)
 
 
-async def test_stale_perception_stops_the_robot() -> None:
+async def test_stale_perception_stops_the_robot_and_resumes_once_fresh_for_a_second() -> None:
     made: list[StallingSegmenter] = []
 
     def factory(config: PerceptionConfig) -> StallingSegmenter:
@@ -133,7 +133,14 @@ async def test_stale_perception_stops_the_robot() -> None:
         # perception_max_age_s = 0.5 plus at most a frame and a control tick.
         assert time.monotonic() - stalled < 0.8
         assert rt.counters.watchdog_stops >= 1
+        assert rt.state is State.PROTECTIVE_STOP
+        assert rt.status()["stop_cause"] == "stale"
         made[0].stall.clear()
+        # A protective stop: once perception is fresh again for 1 s, autonomy goes on.
+        await wait_for(lambda: rt.state is State.RUNNING, 6.0, "autonomy to resume")
+        await wait_for(lambda: sim.uno.pwm != (0, 0), 3.0, "the motors to turn again")
+        assert rt.status()["last_stop"]["cause"] == "stale"
+        assert rt.policy.latched is None
 
 
 class ZoneConfidenceSegmenter:
@@ -354,42 +361,105 @@ class DyingCamera:
         return self.inner.status()  # type: ignore[attr-defined,no-any-return]
 
 
-async def test_camera_lost_mid_run_faults_stops_and_recovers_to_idle() -> None:
-    cameras: list[DyingCamera] = []
-
+def dying_camera(cameras: list[DyingCamera]) -> Callable[[Devices], None]:
     def wrap(devices: Devices) -> None:
         cameras.append(DyingCamera(devices.camera))
         devices.camera = cameras[0]  # type: ignore[assignment]
 
-    async with running(prepare=wrap) as (rt, _):
+    return wrap
+
+
+async def test_a_camera_gap_is_a_protective_stop_that_resumes_by_itself() -> None:
+    cameras: list[DyingCamera] = []
+    async with running(prepare=dying_camera(cameras)) as (rt, _):
         sim = rt.devices.sim
         assert sim is not None and sim.uno is not None
         await rt.start()
         await wait_for(lambda: sim.uno.pwm != (0, 0), 5.0, "the motors to turn")
         cameras[0].dead = True
-        await wait_for(lambda: rt.state is State.FAULT, 1.5, "the fault state")
+        await wait_for(lambda: rt.state is State.PROTECTIVE_STOP, 1.5, "the protective stop")
         await wait_for(lambda: sim.uno.pwm == (0, 0), 1.0, "motors zero")
-        assert "camera" in (rt.status()["fault"] or "")
+        status = rt.status()
+        assert status["stop_cause"] == "camera" and "unplugged" in status["stop_reason"]
+        assert status["last_stop"]["cause"] == "camera" and status["fault"] is None
         cameras[0].dead = False
-        await wait_for(lambda: rt.state is State.IDLE, 2.0, "recovery")
-        assert not rt.status()["autonomous"]  # a person restarts autonomy
+        back = time.monotonic()
+        await wait_for(lambda: rt.state is State.RUNNING, 3.0, "autonomy to resume")
+        # Resumes only once the cause has been clear for resume_after_clear_s (1 s).
+        assert time.monotonic() - back >= 0.9
+        await wait_for(lambda: sim.uno.pwm != (0, 0), 3.0, "the motors to turn again")
+        assert rt.report()["faults"] == 0
+        assert rt.report()["protective_stops"]["camera"] == 1
 
 
-async def test_serial_unplugged_mid_run_faults_and_reconnects() -> None:
+async def test_a_camera_gone_too_long_latches_a_fault_until_the_operator_resets_it() -> None:
+    cameras: list[DyingCamera] = []
+    config = sim_config(safety={"device_lost_latch_s": 1.0})
+    async with running(config, prepare=dying_camera(cameras)) as (rt, _):
+        sim = rt.devices.sim
+        assert sim is not None and sim.uno is not None
+        await rt.start()
+        cameras[0].dead = True
+        await wait_for(lambda: rt.state is State.FAULT, 3.0, "the latched fault")
+        assert "more than 1 s" in (rt.status()["fault"] or "")
+        cameras[0].dead = False
+        await asyncio.sleep(1.5)
+        assert rt.state is State.FAULT  # the cause is gone, the fault stays latched
+        assert sim.uno.pwm == (0, 0)
+        with pytest.raises(CommandRefusedError, match="fault latched"):
+            await rt.start()
+        fault = rt.reset_fault()
+        assert fault is not None and fault.cause == "camera"
+        assert rt.state is State.IDLE  # autonomy does not resume by itself after a fault
+        assert rt.status()["fault"] is None
+        await rt.start()
+        await wait_for(lambda: sim.uno.pwm != (0, 0), 5.0, "the motors to turn")
+
+
+async def test_a_pulled_usb_cable_is_a_protective_stop_that_resumes_after_replug() -> None:
     async with running() as (rt, _):
         sim = rt.devices.sim
         assert sim is not None and sim.uno is not None
         await rt.start()
         await wait_for(lambda: sim.uno.pwm != (0, 0), 5.0, "the motors to turn")
         sim.uno.unplug()
-        await wait_for(lambda: rt.state is State.FAULT, 2.0, "the fault state")
-        assert "Uno" in (rt.status()["fault"] or "")
+        await wait_for(lambda: rt.state is State.PROTECTIVE_STOP, 2.0, "the protective stop")
+        assert "Uno" in (rt.status()["stop_reason"] or "")
+        assert rt.status()["fault"] is None
         sim.uno.replug()
-        await wait_for(lambda: rt.state is State.IDLE, 5.0, "reconnection")
+        await wait_for(lambda: rt.state is State.RUNNING, 6.0, "reconnection and resume")
         assert rt.link is not None and rt.link.stats.reconnects >= 1
-        # The link never re-arms the motors by itself after a reconnect.
-        await asyncio.sleep(0.3)
-        assert sim.uno.pwm == (0, 0)
+        await wait_for(lambda: sim.uno.pwm != (0, 0), 3.0, "autonomy to drive again")
+        assert rt.report()["protective_stops"]["link"] == 1
+
+
+async def test_a_killed_uno_process_is_restarted_and_three_kills_in_a_minute_latch() -> None:
+    async with running() as (rt, _):
+        sim = rt.devices.sim
+        assert sim is not None and sim.uno is not None
+        uno = sim.uno
+        await rt.start()
+        for kill in range(1, 4):
+            await wait_for(lambda: uno.pwm != (0, 0), 8.0, "the motors to turn")
+            uno.kill()  # type: ignore[attr-defined]
+            await wait_for(
+                lambda n=kill: rt.policy.stops_by_cause["link"] == n, 2.0, f"link stop {kill}"
+            )
+            if kill < 3:
+                # Restarted by the daemon's watcher; autonomy resumes by itself.
+                await wait_for(lambda: rt.state is State.RUNNING, 8.0, f"resume after kill {kill}")
+        assert uno.restarts >= 2  # type: ignore[attr-defined]
+        await wait_for(lambda: rt.state is State.FAULT, 2.0, "the latched fault")
+        assert "3 times within 60 s" in (rt.status()["fault"] or "")
+        assert not rt.status()["autonomous"]
+        await wait_for(
+            lambda: rt.link is not None and rt.link.state.value == "connected", 8.0, "link"
+        )
+        await asyncio.sleep(1.2)
+        assert rt.state is State.FAULT and uno.pwm == (0, 0)
+        assert rt.report()["faults"] == 1
+        rt.reset_fault()
+        assert rt.state is State.IDLE
 
 
 async def test_start_stop_restart() -> None:

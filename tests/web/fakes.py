@@ -16,11 +16,11 @@ from app.control.kinematics import WheelOdometry
 from app.control.mux import Twist
 from app.control.steering import SteeringDecision
 from app.hardware.serial_link import LinkStats
+from app.loop_lag import LoopLagMonitor
 from app.mapping.calibration import FloorCalibration, Intrinsics
-from app.mapping.frontiers import FrontierSearch
-from app.mapping.ground_map import GroundMapper
-from app.messages import DriveMsg, FloorMsg, FrameMsg, MapMsg, State
+from app.messages import DriveMsg, FloorMsg, FrameMsg, MapMsg, State, WorldMapMsg
 from app.runtime import CommandRefusedError, Counters, StageClock
+from app.runtime.stops import StopEvent
 from app.web.service import CalibrationFit, CalibrationSave
 
 from ..conftest import room_scene
@@ -75,12 +75,13 @@ class FakeService:
         self.stages = StageClock()
         self.latencies: deque[float] = deque(maxlen=100_000)
         self.latencies_total = 0
+        self.loop_lag = LoopLagMonitor()
+        """Not running: tests record lags into it by hand."""
         self.mux = FakeMux()
         self.link: FakeLink | None = FakeLink()
         self.intrinsics: Intrinsics | None = None
         self.calibration: FloorCalibration | None = None
-        self.frontier: FrontierSearch | None = None
-        self.mapper: GroundMapper | None = None
+        self.world_maps: LatestSlot[WorldMapMsg] = LatestSlot("world_maps")
         self.odometry = WheelOdometry(self.config.drive)
         self.started_s = time.monotonic()
         self.estopped = False
@@ -136,6 +137,10 @@ class FakeService:
             self.mux.estops += 1
         self.estopped = True
         self.state = State.ESTOPPED
+
+    def reset_fault(self) -> StopEvent | None:
+        self.calls.append(("reset_fault",))
+        return None
 
     def reset_estop(self) -> bool:
         self.calls.append(("reset_estop",))

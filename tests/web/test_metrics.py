@@ -127,3 +127,31 @@ def test_scrape_time_with_full_windows() -> None:
         f"steady (4 x 450 new samples) median {float(np.median(steady)):.2f} ms, "
         f"max {max(steady):.2f} ms"
     )
+
+
+def test_event_loop_lag_histogram(client: TestClient, service: FakeService) -> None:
+    """``floornav_event_loop_lag_seconds`` is a well-formed cumulative histogram of the
+    service's loop lags: every bucket the monitor has, non-decreasing counts, +Inf equal
+    to _count, and counts that only grow from scrape to scrape."""
+    for lag_s in (0.0005, 0.003, 0.02, 0.07, 2.0):
+        service.loop_lag.record(lag_s)
+    metrics = scrape(client)
+    buckets = {
+        dict(key)["le"]: count
+        for key, count in metrics["floornav_event_loop_lag_seconds_bucket"].items()
+    }
+    expected_bounds = [f"{b:g}" for b in service.loop_lag.buckets_s] + ["+Inf"]
+    assert list(buckets) == expected_bounds
+    counts = list(buckets.values())
+    assert counts == sorted(counts)
+    assert buckets["0.001"] == 1
+    assert buckets["0.02"] == 3  # le: a lag equal to the bound is in its bucket
+    assert buckets["0.1"] == 4
+    assert buckets["1"] == 4
+    assert buckets["+Inf"] == metrics["floornav_event_loop_lag_seconds_count"][()] == 5
+    assert np.isclose(metrics["floornav_event_loop_lag_seconds_sum"][()], 2.0935)
+
+    service.loop_lag.record(0.004)
+    again = scrape(client)
+    assert again["floornav_event_loop_lag_seconds_count"][()] == 6
+    assert again["floornav_event_loop_lag_seconds_bucket"][(("le", "0.005"),)] == 3

@@ -34,6 +34,7 @@ STATE_CHANGING: list[tuple[str, str, dict[str, Any] | None]] = [
     ("POST", "/api/stop", None),
     ("POST", "/api/estop", None),
     ("POST", "/api/estop/reset", None),
+    ("POST", "/api/fault/reset", None),
     ("POST", "/api/teleop", {"v_m_s": 0.1, "omega_rad_s": 0.0}),
     ("POST", "/api/teleop/release", None),
     ("POST", "/api/calibrate", {"pattern": "7x5", "square_m": 0.04}),
@@ -113,8 +114,9 @@ def test_start_stop_estop_reset_and_auth_check(client: TestClient, service: Fake
     reset = client.post("/api/estop/reset", headers=AUTH).json()
     assert reset == {"ok": True, "state": "idle", "detail": "", "was_estopped": True}
     assert client.post("/api/estop/reset", headers=AUTH).json()["was_estopped"] is False
+    assert client.post("/api/fault/reset", headers=AUTH).json()["cleared"] is None
     assert [c[0] for c in service.calls] == [
-        "start", "stop", "estop", "estop", "reset_estop", "reset_estop",
+        "start", "stop", "estop", "estop", "reset_estop", "reset_estop", "reset_fault",
     ]  # fmt: skip
 
 
@@ -190,7 +192,7 @@ def test_config_patch_of_live_keys(client: TestClient, service: FakeService) -> 
     config = response.json()["config"]
     assert config["steering"]["cruise_speed_m_s"] == 0.2
     assert config["perception"]["safe_zone"]["top_y_frac"] == 0.7
-    assert config["steering"]["turn_speed_rad_s"] == 1.0  # untouched keys stay
+    assert config["steering"]["turn_speed_rad_s"] == 1.5  # untouched keys stay
     updates = [c[1] for c in service.calls if c[0] == "update_config"]
     assert len(updates) == 1
     new = updates[0]

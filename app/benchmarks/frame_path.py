@@ -1,0 +1,345 @@
+"""Timing of the daemon's own per-frame path on simulated frames, with a given
+configuration (``floornav bench`` passes the shipped one).
+
+Frames come from the simulated camera (`renderer_from_config`) along a short drive: a
+right-hand circle of ``PATH_RADIUS_M`` from the world's start pose at the steering's
+cruise speed, one frame per camera period. They are rendered before the timing starts:
+rendering is the simulator's cost, not the daemon's. Each frame then goes through what
+`app.runtime.Runtime` runs for it, in one thread and in the daemon's order:
+
+``perception``
+    `FloorSegmenter.segment` (the perception stage).
+``map_update``
+    `GroundMapper.update` of the floor mask at the frame's pose (the mapping stage).
+``frontier``
+    `GroundMapper.frontiers`, which the daemon runs every ``steering.frontier_period_s``.
+``map_window``
+    `map_window` around the robot, `clearance_ahead_m` of the frame's patch and the
+    frontier path as points (the rest of the mapping stage's every-frame work).
+``steering``
+    `Steering.decide` on that window (the steering stage).
+``world_map``
+    The whole map classified for the web and other readers, which the daemon copies
+    every ``WORLD_MAP_PERIOD_S``.
+
+The two periodic stages are timed on every frame (for their statistics) but reported
+apart, and amortised per frame by the share of frames that run them at the camera's
+rate; steering follows a new frontier path only when the daemon's would.
+
+Per stage: median, p95 and max wall time, and median CPU time of the process. Per frame
+(the every-frame stages): wall time, and CPU time of the process
+(`time.process_time`, all threads: OpenCV's or numba's helpers count) and of the calling
+thread (`time.thread_time`); a difference between the two is work other threads did.
+What a frame costs with its share of the periodic stages is set against the camera's
+frame period (the budget: 33.3 ms at 30 fps).
+
+A warm-up pass over the first frames, with a throwaway mapper and steering, compiles the
+kernels and loads the network first.
+
+``python -m app.benchmarks.frame_path [FRAMES]`` prints the result as JSON, pinned to
+one CPU.
+"""
+
+from __future__ import annotations
+
+import json
+import math
+import sys
+import time
+from collections.abc import Callable
+from dataclasses import dataclass, field
+from typing import Any, TypeVar
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.benchmarks import pin_to_one_cpu
+from app.config import FloornavConfig
+from app.control.steering import Steering
+from app.mapping.frames import Pose2D
+from app.mapping.frontiers import FrontierSearch
+from app.mapping.ground_map import GroundMapper
+from app.perception.pipeline import FloorSegmenter
+from app.runtime import clearance_ahead_m, map_window, path_to_xy
+from app.runtime.stages import WORLD_MAP_PERIOD_S
+from app.sim.setup import camera_model, renderer_from_config, sim_floor_calibration
+from app.sim.world import World
+
+PATH_RADIUS_M = 0.6
+"""The drive's turning radius: from the shipped world's start pose the circle stays in
+the living room, 0.6 m or more from its walls and boxes all the way round."""
+DEFAULT_FRAMES = 60
+WARMUP_FRAMES = 5
+PER_FRAME_STAGES = ("perception", "map_update", "map_window", "steering")
+STAGES = ("perception", "map_update", "frontier", "map_window", "steering", "world_map")
+
+_T = TypeVar("_T")
+
+
+def drive_poses(
+    start: Pose2D, n_frames: int, speed_m_s: float, fps_hz: float
+) -> list[tuple[float, Pose2D]]:
+    """(time s, robot pose in the start pose's frame) of ``n_frames`` camera frames on
+    a right-hand circle of ``PATH_RADIUS_M`` driven at ``speed_m_s`` from ``start``.
+
+    The poses are in the odometry frame (fixed at the start pose, as the daemon's
+    mapper sees them); ``start.compose(pose)`` puts one in the world's plan frame."""
+    poses = []
+    for k in range(n_frames):
+        t = k / fps_hz
+        turned = speed_m_s * t / PATH_RADIUS_M
+        arc = Pose2D(
+            PATH_RADIUS_M * math.sin(turned), -PATH_RADIUS_M * (1 - math.cos(turned)), -turned
+        )
+        poses.append((t, arc))
+    return poses
+
+
+def path_min_clearance_m(world: World, plan_poses: list[Pose2D]) -> float:
+    """The smallest distance from the robot's centre to a wall or box along the path."""
+    return min(world.clearance_m(pose.x_m, pose.y_m) for pose in plan_poses)
+
+
+@dataclass
+class _Samples:
+    """Per stage, in frame order: wall ms, CPU ms of the process, CPU ms of this thread."""
+
+    wall_ms: dict[str, list[float]] = field(default_factory=dict)
+    process_ms: dict[str, list[float]] = field(default_factory=dict)
+    thread_ms: dict[str, list[float]] = field(default_factory=dict)
+
+    def timed(self, stage: str, call: Callable[[], _T]) -> _T:
+        wall, process, thread = time.perf_counter(), time.process_time(), time.thread_time()
+        result = call()
+        self.wall_ms.setdefault(stage, []).append((time.perf_counter() - wall) * 1e3)
+        self.process_ms.setdefault(stage, []).append((time.process_time() - process) * 1e3)
+        self.thread_ms.setdefault(stage, []).append((time.thread_time() - thread) * 1e3)
+        return result
+
+    def per_frame(self, by_stage: dict[str, list[float]]) -> list[float]:
+        """Each frame's sum over the every-frame stages (not the periodic ones)."""
+        return [
+            sum(values) for values in zip(*(by_stage[s] for s in PER_FRAME_STAGES), strict=True)
+        ]
+
+
+def _summary(values: list[float]) -> dict[str, float]:
+    data = np.asarray(values, dtype=np.float64)
+    return {
+        "median": round(float(np.median(data)), 3),
+        "p95": round(float(np.percentile(data, 95)), 3),
+        "max": round(float(data.max()), 3),
+    }
+
+
+class _FramePath:
+    """One mapper and steering fed frame after frame, as the daemon's stages do."""
+
+    def __init__(self, config: FloornavConfig, segmenter: FloorSegmenter) -> None:
+        self.config = config
+        self.segmenter = segmenter
+        calibration = sim_floor_calibration(camera_model(config))
+        self.mapper = GroundMapper(calibration, config.mapping, config.camera)
+        self.steering = Steering(
+            config.steering, config.safety, robot_radius_m=config.mapping.robot_radius_m
+        )
+        self.frontier: FrontierSearch | None = None
+        self.frontier_due_s = 0.0
+        self.reasons: dict[str, int] = {}
+
+    def step(self, image: NDArray[np.uint8], t_s: float, pose: Pose2D, samples: _Samples) -> None:
+        config, mapper = self.config, self.mapper
+        floor = samples.timed("perception", lambda: self.segmenter.segment(image))
+        update = samples.timed(
+            "map_update", lambda: mapper.update(floor.floor_mask, pose, t_s, image)
+        )
+        search = samples.timed("frontier", lambda: mapper.frontiers(pose))
+        if t_s >= self.frontier_due_s:  # the daemon adopts a search this often
+            self.frontier_due_s = t_s + config.steering.frontier_period_s
+            self.frontier = search
+        frontier = self.frontier
+
+        def window() -> tuple[Any, ...]:
+            params = mapper.grid.params
+            cells, grid = map_window(
+                mapper.grid.log_odds,
+                mapper.grid.world_grid,
+                (pose.x_m, pose.y_m),
+                config.steering.local_window_m,
+                free_threshold=params.free_threshold,
+                occupied_threshold=params.occupied_threshold,
+            )
+            clearance_ahead_m(
+                update.patch,
+                mapper.birdseye.grid,
+                config.mapping.robot_radius_m,
+                config.mapping.max_range_m,
+            )
+            path = path_to_xy(frontier, mapper.grid.world_grid) if frontier is not None else None
+            return cells, grid, path
+
+        cells, grid, path = samples.timed("map_window", window)
+        # Fresh perception that doubts the safe zone blocks the way ahead (`zone_not_floor`).
+        blocked = floor.zone_floor_confidence < config.perception.zone_min_floor_confidence
+        decision = samples.timed(
+            "steering",
+            lambda: self.steering.decide(cells, grid, pose, path, blocked_ahead=blocked),
+        )
+        self.reasons[decision.reason] = self.reasons.get(decision.reason, 0) + 1
+        samples.timed("world_map", mapper.grid.classify)
+
+
+def _frames(
+    config: FloornavConfig, n_frames: int
+) -> tuple[list[tuple[float, Pose2D, NDArray[np.uint8]]], World, float]:
+    renderer = renderer_from_config(config)
+    world = renderer.world
+    drive = drive_poses(
+        world.start_pose, n_frames, config.steering.cruise_speed_m_s, config.camera.fps_hz
+    )
+    plan_poses = [world.start_pose.compose(pose) for _, pose in drive]
+    frames = [
+        (t, pose, renderer.render(plan).image)
+        for (t, pose), plan in zip(drive, plan_poses, strict=True)
+    ]
+    return frames, world, path_min_clearance_m(world, plan_poses)
+
+
+def bench_frame_path(
+    config: FloornavConfig, n_frames: int = DEFAULT_FRAMES, *, warmup_frames: int = WARMUP_FRAMES
+) -> dict[str, Any]:
+    """Time the daemon's per-frame path on ``n_frames`` simulated frames.
+
+    Parameters
+    ----------
+    config : the configuration (perception method, mapping, steering, camera, sim)
+    n_frames : int >= 1, timed frames
+    warmup_frames : int >= 1, frames of the untimed warm-up pass (the first of the drive)
+
+    Returns
+    -------
+    dict: ``stages_ms`` (per stage ``median``, ``p95``, ``max`` wall ms and
+    ``cpu_median`` process-CPU ms), ``per_frame_ms`` and ``cpu_per_frame_ms``
+    (``process`` and ``thread``, each ``median`` and ``p95``) over the every-frame
+    stages, ``periodic`` (per periodic stage its ``period_s``, ``share`` of frames that
+    run it, ``amortized_ms`` and ``cpu_amortized_ms``), ``amortized_per_frame_ms`` and
+    ``cpu_amortized_per_frame_ms`` (per-frame medians plus the amortised periodic
+    stages), ``frame_budget_ms``, ``budget_share`` (``wall``, ``cpu``),
+    ``sustainable_fps``, and descriptions.
+    """
+    if n_frames < 1 or warmup_frames < 1:
+        raise ValueError(f"frames: must be >= 1, got {n_frames} timed, {warmup_frames} warm-up")
+    pinned = pin_to_one_cpu()
+    segmenter = FloorSegmenter(config.perception)
+    frames, world, clearance = _frames(config, max(n_frames, warmup_frames))
+    warmup = _FramePath(config, segmenter)
+    for t_s, pose, image in frames[:warmup_frames]:
+        warmup.step(image, t_s, pose, _Samples())
+    measured = _FramePath(config, segmenter)  # a fresh map: the warm-up's frames again
+    samples = _Samples()
+    for t_s, pose, image in frames[:n_frames]:
+        measured.step(image, t_s, pose, samples)
+    stages = {
+        stage: {
+            **_summary(samples.wall_ms[stage]),
+            "cpu_median": round(float(np.median(samples.process_ms[stage])), 3),
+        }
+        for stage in STAGES
+    }
+    fps = config.camera.fps_hz
+    budget_ms = 1e3 / fps
+    periods_s = {
+        "frontier": config.steering.frontier_period_s,
+        "world_map": WORLD_MAP_PERIOD_S,
+    }
+    periodic = {}
+    for stage, period_s in periods_s.items():
+        # The daemon runs it at most once a frame, and once per period at most.
+        share = min(1.0, 1.0 / (fps * period_s))
+        periodic[stage] = {
+            "period_s": period_s,
+            "share": round(share, 4),
+            "amortized_ms": round(stages[stage]["median"] * share, 3),
+            "cpu_amortized_ms": round(stages[stage]["cpu_median"] * share, 3),
+        }
+    per_frame_ms = _summary(samples.per_frame(samples.wall_ms))
+    process = _summary(samples.per_frame(samples.process_ms))
+    thread = _summary(samples.per_frame(samples.thread_ms))
+    amortized = per_frame_ms["median"] + sum(p["amortized_ms"] for p in periodic.values())
+    cpu_amortized = process["median"] + sum(p["cpu_amortized_ms"] for p in periodic.values())
+    return {
+        "method": config.perception.method,
+        "frames": n_frames,
+        "warmup_frames": warmup_frames,
+        "pinned": pinned,
+        "stages_ms": stages,
+        "per_frame_ms": per_frame_ms,
+        "cpu_per_frame_ms": {
+            "process": {"median": process["median"], "p95": process["p95"]},
+            "thread": {"median": thread["median"], "p95": thread["p95"]},
+        },
+        "periodic": periodic,
+        "amortized_per_frame_ms": round(amortized, 3),
+        "cpu_amortized_per_frame_ms": round(cpu_amortized, 3),
+        "camera_fps": fps,
+        "frame_budget_ms": round(budget_ms, 3),
+        "budget_share": {
+            "wall": round(amortized / budget_ms, 3),
+            "cpu": round(cpu_amortized / budget_ms, 3),
+        },
+        "sustainable_fps": round(1e3 / amortized, 1),
+        "steering_reasons": measured.reasons,
+        "frame": f"{config.camera.width_px}x{config.camera.height_px} simulated",
+        "scene": f"world '{world.name}'",
+        "path": (
+            f"right-hand circle of {PATH_RADIUS_M} m from the start pose at "
+            f"{config.steering.cruise_speed_m_s} m/s, {fps:g} frames/s"
+        ),
+        "path_min_clearance_m": round(clearance, 3),
+    }
+
+
+def format_frame_path(result: dict[str, Any]) -> str:
+    """One human-readable block for ``floornav bench``."""
+    stages = result["stages_ms"]
+    per_frame, cpu = result["per_frame_ms"], result["cpu_per_frame_ms"]
+    lines = [
+        f"== daemon per-frame path, method {result['method']} ({result['frames']} frames;"
+        f" {result['frame']}, {result['scene']}; median / p95 / max ms, CPU median)"
+    ]
+    for stage, s in stages.items():
+        lines.append(
+            f"  {stage:<12}{s['median']:>9.2f}{s['p95']:>9.2f}{s['max']:>9.2f}"
+            f"{s['cpu_median']:>9.2f}"
+        )
+    periodic = ", ".join(
+        f"{stage} every {p['period_s']:g} s +{p['amortized_ms']:.2f}"
+        for stage, p in result["periodic"].items()
+    )
+    lines += [
+        f"  {'per frame':<12}{per_frame['median']:>9.2f}{per_frame['p95']:>9.2f}"
+        f"{per_frame['max']:>9.2f}   (every-frame stages)",
+        f"  CPU per frame: process {cpu['process']['median']:.2f} (p95"
+        f" {cpu['process']['p95']:.2f}), thread {cpu['thread']['median']:.2f} ms",
+        f"  amortised ({periodic} ms a frame): {result['amortized_per_frame_ms']:.2f} ms,"
+        f" CPU {result['cpu_amortized_per_frame_ms']:.2f} ms",
+        f"  budget {result['frame_budget_ms']:.1f} ms at {result['camera_fps']:g} fps: wall"
+        f" {result['budget_share']['wall']:.0%}, CPU {result['budget_share']['cpu']:.0%}"
+        f" (sustains {result['sustainable_fps']:.0f} fps)",
+    ]
+    return "\n".join(lines)
+
+
+def main(argv: list[str]) -> int:  # python -m app.benchmarks.frame_path [FRAMES]
+    from app.cli import PROJECT_ROOT
+    from app.config import load_config
+
+    n_frames = int(argv[0]) if argv else DEFAULT_FRAMES
+    pin_to_one_cpu()
+    config = load_config(PROJECT_ROOT / "config.toml")
+    print(json.dumps(bench_frame_path(config, n_frames), indent=2))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main(sys.argv[1:]))

@@ -1,0 +1,177 @@
+"""What the daemon tells people: the live status (API, dashboard) and the run report
+(``floornav run --report``). Both are JSON-ready dictionaries built from the stages'
+published messages and counters; nothing here changes the run."""
+
+from __future__ import annotations
+
+import os
+import statistics
+from typing import TYPE_CHECKING, Any
+
+from app.runtime.telemetry import newest, percentiles_ms
+
+if TYPE_CHECKING:
+    from app.runtime.core import Runtime
+
+
+def status(rt: Runtime) -> dict[str, Any]:
+    """A JSON-ready snapshot for the API and the dashboard."""
+    shared = rt.shared
+    now = rt.clock()
+    floor, map_msg, drive = shared.floors.peek(), shared.maps.peek(), shared.drives.peek()
+    stop = shared.protective_stop
+    hold = shared.policy.holding(now)
+    latched = shared.policy.latched
+    link = shared.link
+    pose = shared.odometry.pose
+    frontier = rt.mapping.frontier
+    recent = newest(rt.perception.frame_ages, 30)
+    camera_status = rt.devices.camera.status()
+    problems = rt.health.device_problems(now) if link is not None else {}
+    device_problem = "; ".join(p for p in problems.values() if p) or None
+    return {
+        "state": rt.state.value,
+        "autonomous": shared.autonomous,
+        "estop": shared.mux.estop_reason,
+        "fault": latched.reason if latched is not None else None,
+        "devices_problem": device_problem,
+        "teleop_driver": shared.mux.teleop_driver(now),
+        "uptime_s": round(rt.elapsed_s(), 2),
+        "fps": round(shared.counters.frames_perceived / rt.elapsed_s(), 2),
+        "frame_age_ms": round((now - floor.capture_s) * 1000, 1) if floor else None,
+        "pickup_age_ms": round(statistics.median(recent) * 1000, 2) if recent else None,
+        "stage_ms": shared.stages.recent_ms(),
+        "loop_lag_ms": rt.loop_lag.summary_ms(),
+        "pose": {
+            "x_m": round(pose.x_m, 3),
+            "y_m": round(pose.y_m, 3),
+            "theta_rad": round(pose.theta_rad, 3),
+        },
+        "distance_m": round(shared.odometry.distance_m, 3),
+        "camera": {
+            "state": camera_status.state.value,
+            "detail": camera_status.detail,
+            "ok": shared.camera_ok,
+            "description": rt.devices.description.get("camera", ""),
+        },
+        "serial": {
+            "state": link.state.value if link else "disconnected",
+            "detail": link.status().detail if link else "",
+            "port": rt.devices.port,
+            "reconnects": link.stats.reconnects if link else 0,
+            "crc_errors": link.stats.crc_errors if link else 0,
+            "timeouts": link.stats.timeouts if link else 0,
+        },
+        "calibration": None
+        if rt.calibration is None
+        else {"reprojection_rms_px": rt.calibration.reprojection_rms_px},
+        "calibration_problem": rt.calibration_problem or None,
+        "command": None
+        if drive is None
+        else {
+            "v_m_s": round(drive.twist.v_m_s, 3),
+            "omega_rad_s": round(drive.twist.omega_rad_s, 3),
+            "left_pwm": drive.left_pwm,
+            "right_pwm": drive.right_pwm,
+            "source": drive.source,
+            "age_ms": round((now - drive.sent_s) * 1000, 1),
+        },
+        "frontier": None
+        if frontier is None
+        else {
+            "goal_xy": list(frontier.goal.xy) if frontier.goal else None,
+            "reason": frontier.reason,
+            "clusters": len(frontier.clusters),
+        },
+        "clearance_ahead_m": round(map_msg.clearance_ahead_m, 3) if map_msg else None,
+        "zone_floor_confidence": round(floor.zone_floor_confidence, 3) if floor else None,
+        "zone_min_floor_confidence": shared.config.perception.zone_min_floor_confidence,
+        # What holds the robot back now: the drive stage's last gate, else a hold that
+        # applies whatever the command (a device gone, a latched fault).
+        "stop_cause": stop.cause if stop is not None else (hold.cause if hold else None),
+        "stop_reason": stop.reason if stop is not None else (hold.reason if hold else None),
+        "last_stop": shared.policy.last_stop.as_dict(now) if shared.policy.last_stop else None,
+        "fault_latched": latched.as_dict(now) if latched is not None else None,
+        "stops_by_cause": dict(shared.policy.stops_by_cause),
+        "counters": dict(shared.counters.__dict__),
+        "estops": shared.mux.estops,
+        "transitions": [
+            {
+                "t": round(t.wall_time, 3),
+                "from": t.old.value,
+                "to": t.new.value,
+                "reason": t.reason,
+            }
+            for t in rt.transitions[-10:]
+        ],
+    }
+
+
+def report(rt: Runtime) -> dict[str, Any]:
+    """The run report ``floornav run --report`` writes (sim-only fields null on
+    hardware)."""
+    from app.sim.truth import map_truth_scores
+
+    shared = rt.shared
+    counters = shared.counters
+    elapsed = rt.elapsed_s()
+    sim = rt.devices.sim
+    mapper = shared.mapper
+    truth: dict[str, float] | None = None
+    if sim is not None and mapper is not None and rt.devices.camera is sim.camera:
+        truth = map_truth_scores(
+            mapper.grid.classify(), mapper.grid.world_grid, sim.T_plan_odom, sim.world
+        ).as_dict()
+    link = shared.link
+    policy = shared.policy
+    now = rt.clock()
+    return {
+        "duration_s": round(elapsed, 2),
+        "frames": counters.frames_perceived,
+        "fps": round(counters.frames_perceived / elapsed, 2),
+        "camera_frames": counters.frames_captured,
+        "frames_mapped": counters.frames_mapped,
+        "frames_skipped_by_capture": counters.frames_skipped,
+        "bad_frames": counters.bad_frames,
+        "latency_ms": percentiles_ms(rt.drive.latencies),
+        "frame_age_at_perception_ms": percentiles_ms(rt.perception.frame_ages),
+        "stage_ms": shared.stages.summary_ms(),
+        "loop_lag_ms": rt.loop_lag.summary_ms(),
+        "collisions": sim.robot.collisions if sim is not None else None,
+        "coverage_ratio": truth["coverage_ratio"] if truth else None,
+        "map_iou": truth["map_iou"] if truth else None,
+        "map_truth": truth,
+        "distance_m": round(shared.odometry.distance_m, 3),
+        "estops": shared.mux.estops,
+        "faults": counters.faults,
+        "fault_latched": policy.latched.as_dict(now) if policy.latched else None,
+        "protective_stops": {
+            cause: count
+            for cause, count in policy.stops_by_cause.items()
+            if cause in ("link", "camera", "stale")
+        },
+        "last_stop": policy.last_stop.as_dict(now) if policy.last_stop else None,
+        "watchdog_stops": counters.watchdog_stops,
+        "clearance_stops": counters.clearance_stops,
+        "premise_stops": counters.premise_stops,
+        "steering_decisions": dict(rt.steering_stage.reasons),
+        "goals_given_up": len(rt.mapping.given_up_goals),
+        "commands_sent": counters.commands_sent,
+        "send_errors": counters.send_errors,
+        "serial": None
+        if link is None
+        else {
+            "reconnects": link.stats.reconnects,
+            "timeouts": link.stats.timeouts,
+            "crc_errors": link.stats.crc_errors,
+            "rtt_ms_p50": link.stats.rtt_median_ms(),
+        },
+        "uno_restarts": getattr(sim.uno, "restarts", None) if sim is not None else None,
+        "rss_mb": rt.rss.summary(),
+        "method": shared.config.perception.method,
+        "final_state": rt.state.value,
+        "shutdown_reason": rt.shutdown_reason or None,
+        "crash": rt.crash,
+        "final_motor_pwm": list(sim.uno.pwm) if sim is not None and sim.uno is not None else None,
+        "pid": os.getpid(),
+    }

@@ -1,0 +1,388 @@
+"""The pipeline's stages, one small class each: capture, perception, mapping, steering,
+odometry. Each has one ``async def run()`` that the `Runtime` starts in its task group,
+reads its input slot and publishes on its output slot (see `app.runtime.core`'s
+diagram). CPU work goes to a `StageWorker` thread (OpenCV, numpy and numba release the
+GIL); the stage itself only waits and hands over frozen messages."""
+
+from __future__ import annotations
+
+import asyncio
+import logging
+import math
+import time
+from collections import deque
+from collections.abc import Callable
+from typing import Protocol
+
+import numpy as np
+from numpy.typing import NDArray
+
+from app.channels import SlotReader
+from app.config import PerceptionConfig
+from app.control.steering import Steering
+from app.mapping.frames import FLOOR, GroundGrid, Pose2D
+from app.mapping.frontiers import FrontierSearch
+from app.mapping.ground_map import GroundMapper
+from app.mapping.occupancy import classify_log_odds
+from app.messages import FloorMsg, FrameMsg, MapMsg, WorldMapMsg
+from app.perception.image_checks import ImageError
+from app.perception.pipeline import FloorResult
+from app.perception.safe_zone import SafeZoneError
+from app.runtime.context import Shared
+from app.runtime.drive import zone_not_floor
+from app.workers import StageWorker
+
+log = logging.getLogger("floornav.runtime")
+
+CAPTURE_POLL_S = 0.002
+"""How often capture looks for a new frame (the cameras publish from their threads)."""
+WORLD_MAP_PERIOD_S = 0.5
+"""The whole-map snapshot for the web and other readers: at most 2 Hz."""
+
+
+class Segmenter(Protocol):
+    """What perception needs (`FloorSegmenter`; tests pass slow or failing ones)."""
+
+    def segment(self, image: NDArray[np.uint8]) -> FloorResult: ...
+
+
+# -- pure helpers (the mapping thread, the web and the benchmarks use them) -------------
+
+
+def clearance_ahead_m(
+    patch: NDArray[np.uint8],
+    patch_grid: GroundGrid,
+    robot_radius_m: float,
+    max_range_m: float,
+    *,
+    blocked_fraction: float = 0.25,
+) -> float:
+    """Free floor ahead of the robot's front edge in a bird's-eye patch: the distance to
+    the nearest row of the robot-wide corridor in which at least ``blocked_fraction`` of
+    the cells are not floor (unseen counts as not floor). The fraction keeps a few
+    misclassified cells (a plank seam, a reflection) from stopping the robot; anything
+    a quarter of the robot's width wide does."""
+    x, y = patch_grid.cell_centers()
+    corridor = np.abs(y[0]) <= robot_radius_m
+    rows_x = x[:, 0]
+    ahead = rows_x > 0
+    not_floor = patch[:, corridor] != FLOOR
+    blocked_rows = ahead & (not_floor.mean(axis=1) >= blocked_fraction)
+    nearest = float(rows_x[blocked_rows].min()) if blocked_rows.any() else max_range_m
+    return max(0.0, nearest - patch_grid.cell_m / 2 - robot_radius_m)
+
+
+def crop_window(
+    grid: GroundGrid, center_xy: tuple[float, float], side_m: float
+) -> tuple[slice, slice, GroundGrid]:
+    """Rows, columns and geometry of the square of ``side_m`` around ``center_xy`` in
+    ``grid`` (clipped to it; one corner cell when the centre lies outside)."""
+    half = math.ceil(side_m / 2 / grid.cell_m)
+    row, col = (int(v) for v in grid.cell_of(np.array([center_xy]))[0])
+    r0, r1 = max(0, row - half), min(grid.rows, row + half + 1)
+    c0, c1 = max(0, col - half), min(grid.cols, col + half + 1)
+    if r0 >= r1 or c0 >= c1:
+        r0, r1, c0, c1 = 0, 1, 0, 1
+    window = GroundGrid(
+        grid.x_max_m - r0 * grid.cell_m,
+        grid.y_max_m - c0 * grid.cell_m,
+        grid.cell_m,
+        r1 - r0,
+        c1 - c0,
+    )
+    return slice(r0, r1), slice(c0, c1), window
+
+
+def map_window(
+    log_odds: NDArray[np.float32],
+    grid: GroundGrid,
+    center_xy: tuple[float, float],
+    side_m: float,
+    *,
+    free_threshold: float,
+    occupied_threshold: float,
+) -> tuple[NDArray[np.int8], GroundGrid]:
+    """Classes of the square of ``side_m`` around ``center_xy`` (clipped to the grid)."""
+    rows, cols, window = crop_window(grid, center_xy, side_m)
+    cells = classify_log_odds(
+        log_odds[rows, cols], free_threshold=free_threshold, occupied_threshold=occupied_threshold
+    )
+    return cells, window
+
+
+def path_to_xy(search: FrontierSearch, grid: GroundGrid) -> NDArray[np.float64] | None:
+    """The path to the search's goal as (n, 2) world points, or None without a goal."""
+    if search.goal is None:
+        return None
+    rc = search.goal.path_cells
+    xs = grid.x_max_m - (rc[:, 0] + 0.5) * grid.cell_m
+    ys = grid.y_max_m - (rc[:, 1] + 0.5) * grid.cell_m
+    return np.column_stack((xs, ys))
+
+
+# -- stages -------------------------------------------------------------------------------
+
+
+class CaptureStage:
+    """Camera -> ``frames``. Sets ``shared.camera_ok`` for the health stage."""
+
+    def __init__(self, shared: Shared) -> None:
+        self.shared = shared
+
+    async def run(self) -> None:
+        shared = self.shared
+        camera = shared.devices.camera
+        last_seq = -1
+        while True:
+            frame = camera.latest(shared.config.safety.camera_max_age_s)
+            if frame is not None and frame.seq != last_seq:
+                if last_seq >= 0 and frame.seq > last_seq + 1:
+                    shared.counters.frames_skipped += frame.seq - last_seq - 1
+                last_seq = frame.seq
+                shared.counters.frames_captured += 1
+                shared.frames.publish(FrameMsg(frame.image, frame.timestamp_s, frame.seq))
+            shared.camera_ok = frame is not None
+            await asyncio.sleep(CAPTURE_POLL_S)
+
+
+class PerceptionStage:
+    """``frames`` -> floor mask -> ``floors``, in its own thread."""
+
+    def __init__(
+        self, shared: Shared, segmenter_factory: Callable[[PerceptionConfig], Segmenter]
+    ) -> None:
+        self.shared = shared
+        self.segmenter_factory = segmenter_factory
+        self.worker = StageWorker("perception")
+        self.frame_ages: deque[float] = deque(maxlen=100_000)
+        """How old each frame was when perception picked it up (seconds)."""
+        self._rebuild = False
+
+    def rebuild_segmenter(self) -> None:
+        """Use the (new) perception configuration from the next frame on."""
+        self._rebuild = True
+
+    async def run(self) -> None:
+        shared = self.shared
+        segmenter = self.segmenter_factory(shared.config.perception)
+        reader = SlotReader(shared.frames)
+        while True:
+            frame = await reader.next()
+            if self._rebuild:
+                self._rebuild = False
+                segmenter = self.segmenter_factory(shared.config.perception)
+            start = shared.clock()
+            self.frame_ages.append(start - frame.capture_s)
+            try:
+                result = await self.worker.run(segmenter.segment, frame.image)
+            except (ImageError, SafeZoneError) as exc:
+                shared.counters.bad_frames += 1
+                log.warning("frame %d rejected: %s", frame.seq, exc, extra={"event": "bad_frame"})
+                continue
+            done = shared.clock()
+            shared.stages.add("perception", done - start)
+            shared.counters.frames_perceived += 1
+            shared.floors.publish(
+                FloorMsg(
+                    frame.seq,
+                    frame.capture_s,
+                    done,
+                    frame.image,
+                    result.floor_mask,
+                    result.method,
+                    result.timings_ms,
+                    result.zone_floor_confidence,
+                )
+            )
+
+
+class MappingStage:
+    """``floors`` -> occupancy grid -> ``maps`` (the window steering needs, every frame)
+    and ``world_maps`` (the whole map, at most 2 Hz), in its own thread. Runs the
+    frontier search every ``steering.frontier_period_s`` and gives up goals that stay
+    out of reach."""
+
+    def __init__(self, shared: Shared) -> None:
+        self.shared = shared
+        self.worker = StageWorker("mapping")
+        self.frontier: FrontierSearch | None = None
+        self.given_up_goals: list[tuple[float, float]] = []
+        self._goal_since: tuple[tuple[float, float], float] | None = None
+        self._frontier_due_s = 0.0
+        self._snapshot_due_s = 0.0
+
+    def forget_frontier(self) -> None:
+        """After a new calibration or map: the old search means nothing."""
+        self.frontier = None
+        self._goal_since = None
+
+    def step(
+        self,
+        mapper: GroundMapper,
+        floor: FloorMsg,
+        pose: Pose2D,
+        now_pose: Pose2D,
+        frontier_due: bool,
+        snapshot_due: bool,
+    ) -> tuple[MapMsg, FrontierSearch | None, WorldMapMsg | None]:
+        """In the mapping thread: fuse the frame, maybe search frontiers, cut the window,
+        maybe copy the whole map for readers."""
+        config = self.shared.config
+        update = mapper.update(floor.floor_mask, pose, floor.capture_s, floor.image)
+        search = (
+            mapper.frontiers(now_pose, given_up_xy=self.given_up_goals) if frontier_due else None
+        )
+        frontier = search if search is not None else self.frontier
+        params = mapper.grid.params
+        world = mapper.grid.world_grid
+        cells, window = map_window(
+            mapper.grid.log_odds,
+            world,
+            (now_pose.x_m, now_pose.y_m),
+            config.steering.local_window_m,
+            free_threshold=params.free_threshold,
+            occupied_threshold=params.occupied_threshold,
+        )
+        clearance = clearance_ahead_m(
+            update.patch,
+            mapper.birdseye.grid,
+            config.mapping.robot_radius_m,
+            config.mapping.max_range_m,
+        )
+        goal = frontier.goal if frontier is not None else None
+        path = path_to_xy(frontier, world) if frontier is not None else None
+        reason = frontier.reason if frontier is not None else "not searched yet"
+        done = time.monotonic()
+        msg = MapMsg(
+            seq=floor.seq,
+            capture_s=floor.capture_s,
+            done_s=done,
+            T_odom_robot=pose,
+            window_cells=cells,
+            window_grid=window,
+            path_xy=path,
+            goal_xy=goal.xy if goal is not None else None,
+            frontier_reason=reason,
+            clearance_ahead_m=clearance,
+        )
+        snapshot = None
+        if snapshot_due:
+            whole = mapper.grid.classify()
+            whole.setflags(write=False)
+            snapshot = WorldMapMsg(
+                seq=floor.seq,
+                done_s=done,
+                cells=whole,
+                grid=world,
+                T_odom_robot=now_pose,
+                path_xy=path,
+                goal_xy=goal.xy if goal is not None else None,
+                frontier_reason=reason,
+                frontier_clusters=len(frontier.clusters) if frontier is not None else 0,
+            )
+        return msg, search, snapshot
+
+    async def run(self) -> None:
+        shared = self.shared
+        reader = SlotReader(shared.floors)
+        while True:
+            floor = await reader.next()
+            mapper = shared.mapper
+            if mapper is None or shared.calibrating:
+                continue
+            start = shared.clock()
+            frontier_due = start >= self._frontier_due_s
+            if frontier_due:
+                self._frontier_due_s = start + shared.config.steering.frontier_period_s
+            snapshot_due = start >= self._snapshot_due_s
+            if snapshot_due:
+                self._snapshot_due_s = start + WORLD_MAP_PERIOD_S
+            msg, search, snapshot = await self.worker.run(
+                self.step,
+                mapper,
+                floor,
+                shared.odometry.pose_at(floor.capture_s),
+                shared.odometry.pose,
+                frontier_due,
+                snapshot_due,
+            )
+            if mapper is not shared.mapper:
+                continue  # recalibrated or replaced meanwhile: this map is gone
+            if search is not None:
+                self.frontier = search
+                if shared.autonomous and not shared.mux.estopped:
+                    self._track_goal(search, start)
+                else:
+                    self._goal_since = None  # patience counts only while exploring
+            shared.stages.add("mapping", shared.clock() - start)
+            shared.counters.frames_mapped += 1
+            shared.maps.publish(msg)
+            if snapshot is not None:
+                shared.world_maps.publish(snapshot)
+
+    def _track_goal(self, search: FrontierSearch, now: float) -> None:
+        """Give up on a goal that has stayed (within 0.3 m) the goal for
+        ``steering.goal_patience_s``: it cannot be seen from where the robot can go."""
+        goal = search.goal
+        patience_s = self.shared.config.steering.goal_patience_s
+        if goal is None:
+            self._goal_since = None
+            return
+        if self._goal_since is None or math.dist(goal.xy, self._goal_since[0]) > 0.3:
+            self._goal_since = (goal.xy, now)
+            return
+        if now - self._goal_since[1] > patience_s:
+            self.given_up_goals.append(goal.xy)
+            log.info(
+                "frontier goal (%.2f, %.2f) given up after %.0f s",
+                goal.xy[0],
+                goal.xy[1],
+                patience_s,
+                extra={"event": "goal_given_up"},
+            )
+            self._goal_since = None
+
+
+class SteeringStage:
+    """``maps`` -> steering decision -> the mux's autonomy input (while exploring)."""
+
+    def __init__(self, shared: Shared, steering: Steering) -> None:
+        self.shared = shared
+        self.steering = steering
+        self.reasons: dict[str, int] = {}
+        """How often each steering decision reason came up."""
+
+    async def run(self) -> None:
+        shared = self.shared
+        reader = SlotReader(shared.maps)
+        while True:
+            msg = await reader.next()
+            if not shared.autonomous or shared.mux.estopped:
+                continue
+            start = shared.clock()
+            decision = self.steering.decide(
+                msg.window_cells,
+                msg.window_grid,
+                shared.odometry.pose,
+                msg.path_xy,
+                blocked_ahead=zone_not_floor(shared, start) is not None,
+            )
+            shared.stages.add("steering", shared.clock() - start)
+            self.reasons[decision.reason] = self.reasons.get(decision.reason, 0) + 1
+            shared.decisions.publish(decision)
+            shared.mux.autonomy(decision.twist, shared.clock(), origin_s=msg.capture_s)
+            shared.wake_drive.set()
+
+
+class OdometryStage:
+    """The Uno's encoder telemetry -> wheel odometry (the pose mapping and steering use)."""
+
+    def __init__(self, shared: Shared) -> None:
+        self.shared = shared
+
+    async def run(self) -> None:
+        link = self.shared.link
+        assert link is not None
+        async for telemetry in link.telemetry_updates():
+            data = telemetry.data
+            self.shared.odometry.update(data.encoder_left, data.encoder_right, telemetry.received_s)

@@ -1,0 +1,125 @@
+"""The daemon's own measurements: stage durations, counters, latency percentiles and
+memory, kept in bounded windows so hours of running cost no more than minutes."""
+
+from __future__ import annotations
+
+import itertools
+import math
+import statistics
+from collections import deque
+from dataclasses import dataclass
+from typing import Any
+
+
+def rss_mb() -> float | None:
+    """Resident memory of this process (Linux), or None."""
+    try:
+        with open("/proc/self/status", encoding="ascii") as status:
+            for line in status:
+                if line.startswith("VmRSS:"):
+                    return int(line.split()[1]) / 1024.0
+    except OSError:
+        return None
+    return None
+
+
+def percentiles_ms(values_s: Any) -> dict[str, float | None]:
+    """p50, p95 and max in milliseconds of durations in seconds, and their count."""
+    data = sorted(values_s)
+    if not data:
+        return {"p50": None, "p95": None, "max": None, "n": 0}
+
+    def pick(q: float) -> float:
+        return round(float(data[min(len(data) - 1, round(q * (len(data) - 1)))]) * 1000, 2)
+
+    return {"p50": pick(0.5), "p95": pick(0.95), "max": round(data[-1] * 1000, 2), "n": len(data)}
+
+
+def newest(values: deque[float], n: int) -> list[float]:
+    """The last ``n`` values without copying the whole (100k-long) window."""
+    return list(itertools.islice(reversed(values), n))
+
+
+class StageClock:
+    """Per-stage durations (seconds), newest last, bounded."""
+
+    def __init__(self, maxlen: int = 100_000) -> None:
+        self.maxlen = maxlen
+        self.samples: dict[str, deque[float]] = {}
+        self.totals: dict[str, int] = {}
+        """Samples ever added per stage (the windows drop old ones; metrics need counts)."""
+
+    def add(self, stage: str, seconds: float) -> None:
+        self.samples.setdefault(stage, deque(maxlen=self.maxlen)).append(seconds)
+        self.totals[stage] = self.totals.get(stage, 0) + 1
+
+    def summary_ms(self) -> dict[str, dict[str, float | None]]:
+        return {name: percentiles_ms(values) for name, values in self.samples.items()}
+
+    def recent_ms(self, n: int = 30) -> dict[str, float]:
+        out = {}
+        for name, values in self.samples.items():
+            tail = newest(values, n)
+            if tail:
+                out[name] = round(statistics.median(tail) * 1000, 2)
+        return out
+
+
+@dataclass
+class Counters:
+    frames_captured: int = 0
+    frames_perceived: int = 0
+    frames_mapped: int = 0
+    frames_skipped: int = 0
+    bad_frames: int = 0
+    commands_sent: int = 0
+    send_errors: int = 0
+    watchdog_stops: int = 0
+    clearance_stops: int = 0
+    premise_stops: int = 0
+    """Times the safe zone ahead stopped being floor while driving (rising edges)."""
+    faults: int = 0
+    """Faults latched (they need the operator)."""
+    protective_stops: int = 0
+    """Protective stops that zeroed the motors (they clear by themselves)."""
+
+
+class RssWatch:
+    """Resident memory sampled over the run: the start, the first minute (when caches and
+    compiled kernels have settled), the peak and the end, so growth after warm-up shows."""
+
+    def __init__(self, settle_s: float = 60.0, period_s: float = 1.0) -> None:
+        self.settle_s = settle_s
+        self.period_s = period_s
+        self._last_s = -math.inf
+        self.start_mb: float | None = None
+        self.settled_mb: float | None = None
+        self.peak_mb: float | None = None
+        self.last_mb: float | None = None
+
+    def sample(self, elapsed_s: float, *, force: bool = False) -> None:
+        """Read the RSS if ``period_s`` passed since the last reading (or ``force``)."""
+        if not force and elapsed_s - self._last_s < self.period_s:
+            return
+        self._last_s = elapsed_s
+        mb = rss_mb()
+        if mb is None:
+            return
+        if self.start_mb is None:
+            self.start_mb = mb
+        if self.settled_mb is None and elapsed_s >= self.settle_s:
+            self.settled_mb = mb
+        self.peak_mb = mb if self.peak_mb is None else max(self.peak_mb, mb)
+        self.last_mb = mb
+
+    def summary(self) -> dict[str, float | None]:
+        growth = None
+        if self.settled_mb and self.last_mb is not None:
+            growth = round((self.last_mb / self.settled_mb - 1.0) * 100.0, 2)
+        return {
+            "start": self.start_mb,
+            "after_first_minute": self.settled_mb,
+            "peak": self.peak_mb,
+            "end": self.last_mb,
+            "growth_after_first_minute_pct": growth,
+        }
