@@ -129,9 +129,8 @@ class Runtime:
         self.mapping = MappingStage(self.shared)
         self.steering_stage = SteeringStage(self.shared, self.steering)
         self.drive = DriveStage(self.shared, RateLimiter(config.drive))
-        self.health = HealthStage(
-            self.shared, (self.perception.worker, self.mapping.worker), self._tick
-        )
+        self.workers = (self.perception.worker, self.mapping.worker, self.steering_stage.worker)
+        self.health = HealthStage(self.shared, self.workers, self._tick)
         self.loop_lag = LoopLagMonitor()
         self.state = State.IDLE
         self.transitions: list[Transition] = []
@@ -639,7 +638,7 @@ class Runtime:
                     extra={"event": "motors_zero_timeout"},
                 )
         self.devices.camera.close()
-        workers = (self.perception.worker, self.mapping.worker)
+        workers = self.workers
         for worker in workers:
             worker.shutdown()
         for worker in workers:

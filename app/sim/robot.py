@@ -223,7 +223,7 @@ class SimRobot:
             lo = hi
         return 1.0
 
-    def start(self, period_s: float = 0.005) -> None:
+    def start(self, period_s: float = 0.01) -> None:
         """Step in real time (``time.monotonic``) on a daemon thread until `close`."""
         if self._thread is not None:
             return

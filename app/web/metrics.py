@@ -192,11 +192,27 @@ class RuntimeCollector(Collector):
             ("clearance_stops", counters.clearance_stops, "Forward motion refused for clearance"),
             ("premise_stops", counters.premise_stops, "Stops because the safe zone is not floor"),
             ("estops", service.mux.estops, "E-stops latched"),
-            ("faults", counters.faults, "Times the devices went faulty"),
+            ("faults", counters.faults, "Faults latched (they need the operator)"),
             ("commands_sent", counters.commands_sent, "Drive commands sent to the Uno"),
             ("send_errors", counters.send_errors, "Drive commands that failed"),
         ):
             yield CounterMetricFamily(f"floornav_{name}", documentation, value=value)
+
+        policy = service.policy
+        stops = CounterMetricFamily(
+            "floornav_stops",
+            "Stops by cause: protective (link, camera, stale: motors zero, resume by "
+            "themselves) and forward-only (clearance, not_floor)",
+            labels=["cause"],
+        )
+        for cause, count in policy.stops_by_cause.items():
+            stops.add_metric([cause], count)
+        yield stops
+        yield GaugeMetricFamily(
+            "floornav_fault_latched",
+            "1 while a fault is latched (needs POST /api/fault/reset), else 0",
+            value=1.0 if policy.latched is not None else 0.0,
+        )
 
         frames = CounterMetricFamily(
             "floornav_frames", "Camera frames by what happened to them", labels=["outcome"]

@@ -72,6 +72,16 @@ class MuxView(Protocol):
         """E-stops latched since start."""
 
 
+class StopView(Protocol):
+    """The stop policy as the metrics read it (`app.runtime.stops.StopPolicy`)."""
+
+    @property
+    def stops_by_cause(self) -> Mapping[str, int]: ...
+
+    @property
+    def latched(self) -> StopEvent | None: ...
+
+
 class RobotService(Protocol):
     """The daemon's verbs and state used by `app.web.create_app`."""
 
@@ -117,6 +127,10 @@ class RobotService(Protocol):
 
     @property
     def mux(self) -> MuxView: ...
+
+    @property
+    def policy(self) -> StopView:
+        """Stops by cause and the latched fault."""
 
     @property
     def link(self) -> LinkView | None: ...

@@ -42,6 +42,8 @@ log = logging.getLogger("floornav.viser")
 
 MAP_PERIOD_S = 0.5
 """The map is one image re-sent at most this often (<= 2 Hz, see measured-facts)."""
+UNWATCHED_POSE_PERIOD_S = 1.0
+"""Pose (and trail) updates while no viser client is connected."""
 POSE_PERIOD_S = 0.1
 """Pose, trail, heading and goal (10 Hz)."""
 TRAIL_STEP_M = 0.02
@@ -236,14 +238,18 @@ class ViserView:
         """Update the scene until cancelled: robot at 10 Hz, map at <= 2 Hz."""
         if self.server is None:
             self.start()
-        next_map_s = 0.0
+        next_map_s = next_pose_s = 0.0
         while True:
             started = time.monotonic()
-            self.update_pose()
-            # Nobody watching: skip the map (viser replays the scene to a new client, and
-            # the next update follows within MAP_PERIOD_S). The pose still runs: it
-            # records the trail.
-            if started >= next_map_s and self.server is not None and self.server.get_clients():
+            watched = self.server is not None and bool(self.server.get_clients())
+            # Nobody watching: the scene's setters cost ~4 ms of GIL per update (py-spy),
+            # so the pose (and the trail it records) goes at 1 Hz until someone looks;
+            # viser replays the scene to a new client and the next update is 0.1 s away.
+            if watched or started >= next_pose_s:
+                next_pose_s = started + UNWATCHED_POSE_PERIOD_S
+                self.update_pose()
+            # Nobody watching: skip the map (the next update follows within MAP_PERIOD_S).
+            if started >= next_map_s and watched:
                 next_map_s = started + MAP_PERIOD_S
                 # classify + PNG encoding of a 400x400 grid: keep it off the event loop.
                 await asyncio.to_thread(self.update_map)

@@ -20,7 +20,7 @@ from app.loop_lag import LoopLagMonitor
 from app.mapping.calibration import FloorCalibration, Intrinsics
 from app.messages import DriveMsg, FloorMsg, FrameMsg, MapMsg, State, WorldMapMsg
 from app.runtime import CommandRefusedError, Counters, StageClock
-from app.runtime.stops import StopEvent
+from app.runtime.stops import StopEvent, StopPolicy
 from app.web.service import CalibrationFit, CalibrationSave
 
 from ..conftest import room_scene
@@ -78,6 +78,7 @@ class FakeService:
         self.loop_lag = LoopLagMonitor()
         """Not running: tests record lags into it by hand."""
         self.mux = FakeMux()
+        self.policy = StopPolicy(self.config.safety)
         self.link: FakeLink | None = FakeLink()
         self.intrinsics: Intrinsics | None = None
         self.calibration: FloorCalibration | None = None

@@ -43,8 +43,14 @@ def test_metrics_report_the_service(client: TestClient, service: FakeService) ->
     service.link.stats.timeouts = 4
     service.link.stats.reconnects = 5
     service.floors.publish(floor_msg(1, zone_floor_confidence=0.25))
+    for t in (0.0, 1.0, 2.0):  # three link blips in a minute latch a fault
+        service.policy.observe("link", "Uno reconnecting", t)
+        service.policy.observe("link", None, t + 0.5)
 
     metrics = scrape(client)
+    assert metrics["floornav_stops_total"][(("cause", "link"),)] == 3
+    assert metrics["floornav_stops_total"][(("cause", "clearance"),)] == 0
+    assert metrics["floornav_fault_latched"][()] == 1
     perception = (("stage", "perception"),)
     assert metrics["floornav_stage_latency_seconds_count"][perception] == 4
     buckets = metrics["floornav_stage_latency_seconds_bucket"]
