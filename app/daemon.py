@@ -4,6 +4,8 @@
 from __future__ import annotations
 
 import asyncio
+import ctypes
+import ctypes.util
 import gc
 import logging
 from pathlib import Path
@@ -113,6 +115,22 @@ def save_run_map(runtime: Runtime, map_path: Path) -> str | None:
     return str(map_path)
 
 
+M_ARENA_MAX = -8
+"""glibc's mallopt() parameter number for the malloc arena limit."""
+
+
+def limit_malloc_arenas(arenas: int = 2) -> bool:
+    """Cap glibc's malloc arenas before the daemon's threads start. glibc gives each
+    busy thread its own arena (up to 8 per core) and rarely returns their memory: with
+    ~14 threads the daemon kept ~20 MB more resident than with 2 arenas (measured: 378
+    vs 357 MB), at no measurable cost in speed. False where there is no glibc."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6")
+        return bool(libc.mallopt(M_ARENA_MAX, arenas))
+    except (OSError, AttributeError):
+        return False
+
+
 def run_daemon(
     config: FloornavConfig,
     *,
@@ -127,6 +145,7 @@ def run_daemon(
     saves the map there on exit, with a ROS map_server copy (``.pgm`` + ``.yaml``)
     beside it. A map file that cannot be used raises `MapFileError` before any device
     opens, and is never overwritten."""
+    limit_malloc_arenas()
     setup_logging(config.runtime.log_level, json_lines=config.runtime.log_json)
     token, generated = resolve_token(config)
     saved = load_map(map_path) if map_path is not None and map_path.exists() else None

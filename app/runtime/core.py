@@ -26,7 +26,6 @@ import contextlib
 import logging
 import signal
 import time
-from collections import deque
 from collections.abc import Awaitable, Callable, Coroutine, Sequence
 from typing import Any, Protocol
 
@@ -60,7 +59,7 @@ from app.runtime.stages import (
     SteeringStage,
 )
 from app.runtime.stops import STOP_RULES, ProtectiveStop, StopEvent, StopPolicy
-from app.runtime.telemetry import Counters, RssWatch, StageClock
+from app.runtime.telemetry import Counters, FloatWindow, RssWatch, StageClock
 
 log = logging.getLogger("floornav.runtime")
 
@@ -205,7 +204,7 @@ class Runtime:
         return self.shared.drives
 
     @property
-    def latencies(self) -> deque[float]:
+    def latencies(self) -> FloatWindow:
         return self.drive.latencies
 
     @property

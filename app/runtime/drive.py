@@ -9,7 +9,6 @@ the layer below all of these."""
 from __future__ import annotations
 
 import logging
-from collections import deque
 
 from app.channels import wait_event
 from app.control.kinematics import RateLimiter, twist_to_pwm
@@ -19,6 +18,7 @@ from app.hardware.serial_link import LinkError, NotConnectedError
 from app.messages import DriveMsg, FloorMsg
 from app.runtime.context import Shared
 from app.runtime.stops import ProtectiveStop
+from app.runtime.telemetry import FloatWindow
 
 log = logging.getLogger("floornav.runtime")
 
@@ -144,7 +144,7 @@ class DriveStage:
         self.shared = shared
         self.limiter = limiter
         self.gate = SafetyGate(shared)
-        self.latencies: deque[float] = deque(maxlen=100_000)
+        self.latencies = FloatWindow()
         """Capture-to-command latency of each new autonomy command (seconds)."""
         self.latencies_total = 0
         self._last_latency_origin = -1.0

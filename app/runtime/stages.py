@@ -11,7 +11,6 @@ import functools
 import logging
 import math
 import time
-from collections import deque
 from collections.abc import Callable
 from typing import Protocol
 
@@ -31,6 +30,7 @@ from app.perception.pipeline import FloorResult
 from app.perception.safe_zone import SafeZoneError
 from app.runtime.context import Shared
 from app.runtime.drive import zone_not_floor
+from app.runtime.telemetry import FloatWindow
 from app.workers import StageWorker
 
 log = logging.getLogger("floornav.runtime")
@@ -155,7 +155,7 @@ class PerceptionStage:
         self.shared = shared
         self.segmenter_factory = segmenter_factory
         self.worker = StageWorker("perception")
-        self.frame_ages: deque[float] = deque(maxlen=100_000)
+        self.frame_ages = FloatWindow()
         """How old each frame was when perception picked it up (seconds)."""
         self._rebuild = False
 

@@ -12,7 +12,6 @@ from __future__ import annotations
 import itertools
 import math
 import time
-from collections import deque
 from collections.abc import Iterable, Sequence
 from dataclasses import dataclass, field
 
@@ -28,6 +27,7 @@ from prometheus_client.core import (
 from prometheus_client.registry import Collector
 
 from app.messages import State
+from app.runtime.telemetry import FloatWindow
 from app.web.service import RobotService
 
 STAGE_BUCKETS_S = (
@@ -66,7 +66,7 @@ class CumulativeHistogram:
     def __post_init__(self) -> None:
         self.counts = np.zeros(len(self.bounds) + 1, dtype=np.int64)
 
-    def catch_up(self, window: deque[float], window_total: int) -> None:
+    def catch_up(self, window: FloatWindow, window_total: int) -> None:
         """Count the window's samples added since the last call. If more arrived than
         the window holds, the ones that dropped out are lost (not invented)."""
         new = min(window_total - self.seen, len(window))

@@ -8,7 +8,6 @@ for the event loop's thread: route handlers are ``async def`` for that reason.
 
 from __future__ import annotations
 
-from collections import deque
 from collections.abc import Callable, Mapping
 from typing import Any, Protocol
 
@@ -24,6 +23,7 @@ from app.mapping.calibration import FloorCalibration, Intrinsics
 from app.messages import DriveMsg, FloorMsg, FrameMsg, MapMsg, State, WorldMapMsg
 from app.runtime import Counters
 from app.runtime.stops import StopEvent
+from app.runtime.telemetry import FloatWindow
 
 CalibrationFit = Callable[[NDArray[np.uint8]], FloorCalibration]
 CalibrationSave = Callable[[FloorCalibration], None]
@@ -33,7 +33,7 @@ class StageTimings(Protocol):
     """`app.runtime.StageClock` as the metrics read it."""
 
     @property
-    def samples(self) -> Mapping[str, deque[float]]:
+    def samples(self) -> Mapping[str, FloatWindow]:
         """Per-stage durations in seconds, newest last (bounded: old ones drop out)."""
 
     @property
@@ -114,7 +114,7 @@ class RobotService(Protocol):
     def stages(self) -> StageTimings: ...
 
     @property
-    def latencies(self) -> deque[float]:
+    def latencies(self) -> FloatWindow:
         """Capture-to-command latencies of autonomy commands (seconds), newest last."""
 
     @property

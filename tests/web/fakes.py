@@ -3,7 +3,6 @@
 from __future__ import annotations
 
 import time
-from collections import deque
 from dataclasses import dataclass, field
 from typing import Any
 
@@ -21,6 +20,7 @@ from app.mapping.calibration import FloorCalibration, Intrinsics
 from app.messages import DriveMsg, FloorMsg, FrameMsg, MapMsg, State, WorldMapMsg
 from app.runtime import CommandRefusedError, Counters, StageClock
 from app.runtime.stops import StopEvent, StopPolicy
+from app.runtime.telemetry import FloatWindow
 from app.web.service import CalibrationFit, CalibrationSave
 
 from ..conftest import room_scene
@@ -73,7 +73,7 @@ class FakeService:
         self.maps: LatestSlot[MapMsg] = LatestSlot("maps")
         self.counters = Counters()
         self.stages = StageClock()
-        self.latencies: deque[float] = deque(maxlen=100_000)
+        self.latencies = FloatWindow()
         self.latencies_total = 0
         self.loop_lag = LoopLagMonitor()
         """Not running: tests record lags into it by hand."""
