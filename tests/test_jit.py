@@ -96,7 +96,8 @@ def test_every_kernel_the_daemon_calls_is_ready(warmed: JitReport) -> None:
         if name not in NEVER_CALLED and name not in PARALLAX_ONLY and not ready(name)
     ]
     assert not_ready == [], f"compile_kernels left these for the robot's time: {not_ready}"
-    assert warmed.kernels > 0 and warmed.compiled + warmed.loaded > 0
+    # Compiled or loaded now, or already by an earlier test of this session (then neither).
+    assert warmed.kernels > 0
     assert set(NEVER_CALLED) | PARALLAX_ONLY <= set(dispatchers), "stale exception list"
 
 
