@@ -214,7 +214,7 @@ class SerialConfig(StrictModel):
     port: str = "/dev/serial/by-id/usb-Arduino__www.arduino.cc__0043-if00"
     """Used with ``backend = "port"``; prefer a stable /dev/serial/by-id/ path."""
     handshake_timeout_s: Annotated[float, Field(gt=0.0, le=30.0)] = 3.0
-    ack_timeout_ms: Annotated[float, Field(gt=0.0, le=1000.0)] = 50.0
+    ack_timeout_ms: Annotated[float, Field(gt=0.0, le=1000.0)] = 100.0
     heartbeat_period_ms: Annotated[float, Field(ge=20.0, le=200.0)] = 100.0
     """Must stay well below the firmware's 250 ms deadman."""
     telemetry_period_ms: Annotated[int, Field(ge=20, le=1000)] = 50
