@@ -2,9 +2,11 @@
 """Run `floornav run` for a while with video clients streaming from /ws/video, then
 print the daemon's capture-to-command latency (from its report) and what the clients
 measured (capture-to-client latency, frames). Reproduces the API milestone's
-"latency while a dashboard streams" figure:
+"latency while a dashboard streams" figure, and with ``--status-rate`` issue 11's
+"5 video clients and 100 status requests/s":
 
     .venv/bin/python scripts/measure_streaming.py --duration-s 40 --clients 1
+    .venv/bin/python scripts/measure_streaming.py --duration-s 120 --clients 5 --status-rate 100
 """
 
 from __future__ import annotations
@@ -21,6 +23,7 @@ import tempfile
 import time
 from pathlib import Path
 
+import httpx
 from websockets.asyncio.client import connect
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -48,6 +51,25 @@ async def stream(url: str, until_s: float, latencies: list[float], ack: bool) ->
             if ack:
                 await ws.send(json.dumps({"type": "ack"}))
     return frames
+
+
+async def poll_status(url: str, until_s: float, rate_hz: float) -> tuple[int, int]:
+    """GET ``url`` at ``rate_hz`` (on a fixed schedule, not back to back) until
+    ``until_s``; returns (answered, failed)."""
+    answered = failed = 0
+    period = 1.0 / rate_hz
+    async with httpx.AsyncClient(timeout=2.0) as client:
+        next_s = time.monotonic()
+        while time.time() < until_s:
+            try:
+                response = await client.get(url)
+                answered += response.status_code == 200
+                failed += response.status_code != 200
+            except httpx.HTTPError:
+                failed += 1
+            next_s += period
+            await asyncio.sleep(max(0.0, next_s - time.monotonic()))
+    return answered, failed
 
 
 async def main_async(args: argparse.Namespace) -> int:
@@ -88,12 +110,23 @@ async def main_async(args: argparse.Namespace) -> int:
             await asyncio.sleep(0.2)
     until = time.time() + args.duration_s - 3
     per_client: list[list[float]] = [[] for _ in range(args.clients)]
-    frames = await asyncio.gather(
-        *(stream(url, until, per_client[i], ack=True) for i in range(args.clients))
+    polls = (
+        [poll_status(f"http://127.0.0.1:{port}/api/status", until, args.status_rate)]
+        if args.status_rate > 0
+        else []
     )
+    results = await asyncio.gather(
+        *(stream(url, until, per_client[i], ack=True) for i in range(args.clients)), *polls
+    )
+    frames = results[: args.clients]
     proc.wait(timeout=args.duration_s + 60)
     data = json.loads(report.read_text())
     print(f"daemon: fps {data['fps']}, capture->command latency ms {data['latency_ms']}")
+    print(f"daemon: event-loop lag ms {data['loop_lag_ms']}, faults {data['faults']}")
+    if polls:
+        answered, failed = results[-1]  # type: ignore[misc]
+        rate = answered / max(1e-9, args.duration_s - 3)
+        print(f"status: {answered} answered ({rate:.0f}/s), {failed} failed")
     for i, lat in enumerate(per_client):
         ms = sorted(v * 1000 for v in lat)
         p95 = ms[int(0.95 * (len(ms) - 1))] if ms else float("nan")
@@ -108,6 +141,9 @@ def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--duration-s", type=float, default=40.0)
     parser.add_argument("--clients", type=int, default=1)
+    parser.add_argument(
+        "--status-rate", type=float, default=0.0, help="GET /api/status this often (per s)"
+    )
     return asyncio.run(main_async(parser.parse_args()))
 
 
