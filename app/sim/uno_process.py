@@ -416,7 +416,13 @@ class SimulatedUnoProcess:
         too_slow = threading.Timer(self.start_timeout_s, proc.kill)
         too_slow.start()
         try:
+            # The child publishes its port (the symlink) before it prints PTY, so a host
+            # that keeps reopening the port may already talk to it: its RX and MOTOR
+            # lines can come first, and count like any others.
             first = proc.stdout.readline()
+            while first and not first.startswith("PTY "):
+                self._on_line(first)
+                first = proc.stdout.readline()
         finally:
             too_slow.cancel()
         if not first.startswith("PTY "):
