@@ -28,6 +28,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from app.benchmarks import cpu_name
+
 ROOT = Path(__file__).resolve().parents[1]
 DATASETS = ROOT.parent / "shared" / "datasets"
 REL_DATASETS = "../shared/datasets"
@@ -57,16 +59,6 @@ def commands() -> dict[str, list[str]]:
         "bench": ["bench", "--json"],
         "eval-video": ["eval-video", *videos, "--method", "all", "--stride", "2", "--json"],
     }
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return "an unknown CPU"
 
 
 def run(name: str, args: list[str]) -> dict[str, Any]:

@@ -27,6 +27,8 @@ import sys
 from pathlib import Path
 from typing import Any
 
+from app.benchmarks import cpu_name
+
 ROOT = Path(__file__).resolve().parents[1]
 OUT = ROOT / "docs" / "measurements" / "performance.json"
 DOC = ROOT / "docs" / "performance.md"
@@ -42,16 +44,6 @@ def floornav(args: list[str]) -> dict[str, Any]:
     done = subprocess.run(command, cwd=ROOT, check=True, stdout=subprocess.PIPE, text=True)
     result: dict[str, Any] = json.loads(done.stdout)
     return result
-
-
-def cpu_name() -> str:
-    try:
-        for line in Path("/proc/cpuinfo").read_text().splitlines():
-            if line.startswith("model name"):
-                return line.split(":", 1)[1].strip()
-    except OSError:
-        pass
-    return platform.processor() or "unknown CPU"
 
 
 def load_average() -> float | None:

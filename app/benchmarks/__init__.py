@@ -5,7 +5,9 @@ from __future__ import annotations
 
 import contextlib
 import os
+import platform
 from collections.abc import Iterator
+from pathlib import Path
 
 import cv2
 
@@ -33,3 +35,14 @@ def restored_affinity() -> Iterator[None]:
         cv2.setNumThreads(threads)
         if affinity is not None:
             os.sched_setaffinity(0, affinity)
+
+
+def cpu_name() -> str:
+    """The CPU's model name (Linux), for the measurement pages."""
+    try:
+        for line in Path("/proc/cpuinfo").read_text().splitlines():
+            if line.startswith("model name"):
+                return line.split(":", 1)[1].strip()
+    except OSError:
+        pass
+    return platform.processor() or "an unknown CPU"

@@ -34,6 +34,11 @@ def zone_not_floor(shared: Shared, now: float) -> FloorMsg | None:
     return floor
 
 
+def without_forward_motion(out: MuxOutput) -> MuxOutput:
+    """``out`` with its forward speed taken away (turning stays allowed)."""
+    return MuxOutput(Twist(0.0, out.twist.omega_rad_s), out.source, out.stamp_s, out.origin_s)
+
+
 class SafetyGate:
     """The host's stop layers on top of the mux. ``shared.protective_stop`` says which
     one holds the robot back after each call; `app.runtime.stops.StopPolicy` decides
@@ -113,7 +118,7 @@ class SafetyGate:
         shared.protective_stop = ProtectiveStop("not_floor", f"{problem}: {then}")
         if out.twist.v_m_s <= 0:
             return out
-        return MuxOutput(Twist(0.0, out.twist.omega_rad_s), out.source, out.stamp_s, out.origin_s)
+        return without_forward_motion(out)
 
     def _clearance(self, out: MuxOutput, now: float) -> MuxOutput:
         shared = self.shared
@@ -134,7 +139,7 @@ class SafetyGate:
             shared.counters.clearance_stops += 1
             log.debug("%s: no forward motion", problem, extra={"event": "clearance_stop"})
         shared.protective_stop = ProtectiveStop("clearance", f"{problem}: no forward motion")
-        return MuxOutput(Twist(0.0, out.twist.omega_rad_s), out.source, out.stamp_s, out.origin_s)
+        return without_forward_motion(out)
 
 
 class DriveStage:
