@@ -251,6 +251,7 @@ class MappingStage:
             config.mapping.max_range_m,
         )
         goal = frontier.goal if frontier is not None else None
+        goal_xy = goal.xy if goal is not None else None
         path = path_to_xy(frontier, world) if frontier is not None else None
         reason = frontier.reason if frontier is not None else "not searched yet"
         done = time.monotonic()
@@ -262,7 +263,7 @@ class MappingStage:
             window_cells=cells,
             window_grid=window,
             path_xy=path,
-            goal_xy=goal.xy if goal is not None else None,
+            goal_xy=goal_xy,
             frontier_reason=reason,
             clearance_ahead_m=clearance,
         )
@@ -277,7 +278,7 @@ class MappingStage:
                 grid=world,
                 T_odom_robot=now_pose,
                 path_xy=path,
-                goal_xy=goal.xy if goal is not None else None,
+                goal_xy=goal_xy,
                 frontier_reason=reason,
                 frontier_clusters=len(frontier.clusters) if frontier is not None else 0,
             )
