@@ -15,7 +15,15 @@ from dataclasses import dataclass
 from pathlib import Path
 from typing import Annotated, Any, Literal
 
-from pydantic import BaseModel, ConfigDict, Field, ValidationError, model_validator
+from pydantic import (
+    BaseModel,
+    ConfigDict,
+    Field,
+    ValidationError,
+    ValidationInfo,
+    field_validator,
+    model_validator,
+)
 from pydantic_settings import (
     BaseSettings,
     PydanticBaseSettingsSource,
@@ -243,13 +251,37 @@ class DriveConfig(StrictModel):
     """Wheel surface speed at PWM 255 (measure it: drive at 255, read the encoders)."""
     pwm_deadband: Annotated[int, Field(ge=0, le=200)] = 30
     """PWM at or below which the wheels do not turn; commands start just above it."""
-    max_linear_speed_m_s: Annotated[float, Field(gt=0.0, le=2.0)] = 0.35
-    max_angular_speed_rad_s: Annotated[float, Field(gt=0.0, le=10.0)] = 1.5
+    max_linear_speed_m_s: Annotated[float, Field(gt=0.0, le=2.0, validate_default=True)] = 0.35
+    """At most ``max_wheel_speed_m_s``: faster than its wheels no robot goes."""
+    max_angular_speed_rad_s: Annotated[float, Field(gt=0.0, le=10.0, validate_default=True)] = 1.5
+    """At most ``2 * max_wheel_speed_m_s / wheel_base_m`` (both wheels at full speed,
+    opposite ways)."""
     max_linear_accel_m_s2: Annotated[float, Field(gt=0.0, le=20.0)] = 1.0
     max_angular_accel_rad_s2: Annotated[float, Field(gt=0.0, le=50.0)] = 5.0
     control_period_ms: Annotated[float, Field(ge=5.0, le=100.0)] = 20.0
     """How often the command mux is evaluated (timeouts, ramps); new perception results
     are sent at once, without waiting for the tick."""
+
+    @field_validator("max_linear_speed_m_s")
+    @classmethod
+    def _linear_within_the_wheels(cls, value: float, info: ValidationInfo) -> float:
+        wheel = info.data.get("max_wheel_speed_m_s")
+        if wheel is not None and value > wheel:
+            raise ValueError(
+                f"{value:g} exceeds drive.max_wheel_speed_m_s {wheel:g} (the wheels' top speed)"
+            )
+        return value
+
+    @field_validator("max_angular_speed_rad_s")
+    @classmethod
+    def _angular_within_the_wheels(cls, value: float, info: ValidationInfo) -> float:
+        wheel, base = info.data.get("max_wheel_speed_m_s"), info.data.get("wheel_base_m")
+        if wheel is not None and base is not None and value > 2.0 * wheel / base:
+            raise ValueError(
+                f"{value:g} exceeds 2 * drive.max_wheel_speed_m_s / drive.wheel_base_m = "
+                f"{2.0 * wheel / base:g} rad/s (the wheels' top speed, opposite ways)"
+            )
+        return value
 
 
 class SteeringConfig(StrictModel):
@@ -288,8 +320,12 @@ class SafetyConfig(StrictModel):
     """A camera without a frame this recent counts as gone."""
     teleop_timeout_s: Annotated[float, Field(gt=0.0, le=5.0)] = 0.5
     autonomy_timeout_s: Annotated[float, Field(gt=0.0, le=5.0)] = 0.5
-    min_clearance_m: Annotated[float, Field(ge=0.0, le=3.0)] = 0.20
-    """Free floor needed ahead of the robot's front edge to move forward."""
+    min_clearance_floor_m: Annotated[float, Field(ge=0.0, le=3.0)] = 0.10
+    """The least ``min_clearance_m`` may be. Only config.toml sets it (it is not a live
+    key), so nobody on the network can turn the clearance stop off."""
+    min_clearance_m: Annotated[float, Field(ge=0.0, le=3.0, validate_default=True)] = 0.20
+    """Free floor needed ahead of the robot's front edge to move forward; at least
+    ``min_clearance_floor_m`` (checked also when only the floor is set)."""
     auto_resume: bool = True
     """After a protective stop (Uno link blip, camera gap, stale perception) autonomy
     resumes by itself once the cause has been clear for ``resume_after_clear_s``;
@@ -302,15 +338,36 @@ class SafetyConfig(StrictModel):
     device_lost_latch_s: Annotated[float, Field(gt=0.0, le=600.0)] = 5.0
     """A camera or Uno gone for longer than this latches a fault."""
 
+    @field_validator("min_clearance_m")
+    @classmethod
+    def _clearance_above_floor(cls, value: float, info: ValidationInfo) -> float:
+        floor = info.data.get("min_clearance_floor_m")
+        if floor is not None and value < floor:
+            raise ValueError(
+                f"{value:g} is below safety.min_clearance_floor_m {floor:g} (the floor is "
+                "set in config.toml only)"
+            )
+        return value
+
 
 class RuntimeConfig(StrictModel):
     """The daemon."""
 
-    autostart: bool = True
-    """Start exploring as soon as the devices are up (the shipped simulator config does);
-    otherwise wait for ``POST /api/start``."""
+    autostart: Literal["never", "simulator", "always"] = "simulator"
+    """When to start exploring without being told: ``simulator`` only when the Uno is
+    simulated (``serial.backend`` ``sim`` or ``simavr``), so a real robot never drives
+    before someone presses start; ``always`` also on a real robot; ``never``: wait for
+    ``POST /api/start``. ``true`` / ``false`` mean ``always`` / ``never``."""
     log_json: bool = False
     """One JSON object per log line instead of text."""
+
+    @field_validator("autostart", mode="before")
+    @classmethod
+    def _autostart_from_bool(cls, value: object) -> object:
+        if isinstance(value, bool):
+            return "always" if value else "never"
+        return value
+
     log_level: Literal["debug", "info", "warning", "error"] = "info"
 
 
@@ -372,6 +429,11 @@ class FloornavConfig(BaseSettings):
     runtime: RuntimeConfig = RuntimeConfig()
     web: WebConfig = WebConfig()
     viser: ViserConfig = ViserConfig()
+
+    def autostarts(self) -> bool:
+        """True if the daemon starts exploring on its own (`RuntimeConfig.autostart`)."""
+        mode = self.runtime.autostart
+        return mode == "always" or (mode == "simulator" and self.serial.backend != "port")
 
     @classmethod
     def settings_customise_sources(

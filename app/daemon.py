@@ -42,7 +42,7 @@ def banner(
         f"  web      http://{web.host}:{web.port}/  (API /api, metrics /metrics)",
         f"  viser    port {config.viser.port} (localhost)" if config.viser.enabled else "",
         "  autonomy "
-        + ("starts at once" if config.runtime.autostart else "waits for POST /api/start"),
+        + ("starts at once" if config.autostarts() else "waits for a start (dashboard or API)"),
     ]
     return "\n".join(line for line in lines if line)
 

@@ -99,3 +99,31 @@ def test_the_shipped_configuration_is_the_models_default() -> None:
     assert shipped == default
     assert shipped.perception == PerceptionConfig()
     assert shipped.perception.method == "floornet"
+
+
+@pytest.mark.parametrize(
+    ("autostart", "backend", "starts"),
+    [
+        ("simulator", "sim", True),
+        ("simulator", "simavr", True),
+        ("simulator", "port", False),  # a real robot waits for someone to press start
+        ("always", "port", True),
+        (True, "port", True),  # an explicit true is "always"
+        ("never", "sim", False),
+        (False, "sim", False),
+    ],
+)
+def test_a_real_uno_starts_only_when_told_explicitly(
+    autostart: object, backend: str, starts: bool
+) -> None:
+    config = FloornavConfig.model_validate(
+        {"runtime": {"autostart": autostart}, "serial": {"backend": backend}}
+    )
+    assert config.autostarts() is starts
+
+
+def test_autostart_names_its_choices(tmp_path: Path) -> None:
+    path = tmp_path / "config.toml"
+    path.write_text('[runtime]\nautostart = "yes"\n')
+    with pytest.raises(ConfigError, match=r"runtime\.autostart"):
+        load_config(path)

@@ -322,16 +322,26 @@ class Runtime:
         self,
         fit: Callable[[NDArray[np.uint8]], FloorCalibration],
         save: Callable[[FloorCalibration], None] | None = None,
+        *,
+        apply: bool = True,
     ) -> FloorCalibration:
         """Fit a new floor calibration on the newest camera frame with ``fit`` (run in a
         thread; it raises CalibrationError with the reason), save it with ``save``, and
-        rebuild the mapper (the map starts afresh). Autonomy stops while calibrating."""
+        rebuild the mapper (the map starts afresh). Autonomy stops while calibrating; if
+        the calibration then fails, that stop is recorded (cause ``calibration``: the
+        status's ``last_stop`` says why autonomy is off).
+
+        With ``apply`` false it is a preview: only ``fit`` runs (``save`` must be None)
+        and its result comes back; the live calibration, the map and autonomy stay as
+        they are, so it is allowed while e-stopped or calibrating too."""
         shared = self.shared
+        if not apply:
+            if save is not None:
+                raise ValueError("a preview (apply=False) saves nothing")
+            return await asyncio.to_thread(fit, self._calibration_frame().image)
         if shared.mux.estopped:
             raise CommandRefusedError("e-stop is latched: reset it first")
-        frame = shared.frames.peek()
-        if frame is None or frame.age_s(self.clock()) > shared.config.safety.camera_max_age_s:
-            raise CommandRefusedError("no recent camera frame to calibrate on")
+        frame = self._calibration_frame()
         was_autonomous = shared.autonomous
         shared.autonomous = False
         shared.mux.clear_autonomy()
@@ -358,14 +368,29 @@ class Runtime:
                     "reprojection_rms_px": round(calibration.reprojection_rms_px, 3),
                 },
             )
-            return calibration
-        finally:
-            shared.calibrating = False
-            self._update_state("calibration finished")
-            if was_autonomous and shared.mapper is not None:
+            if was_autonomous:
                 log.info(
                     "autonomy stays stopped after calibration; start again", extra={"event": "stop"}
                 )
+            return calibration
+        except Exception as exc:
+            if was_autonomous:
+                event = shared.policy.record(
+                    "calibration",
+                    f"calibration failed: {exc}; autonomy stays off until started",
+                    self.clock(),
+                )
+                log.warning("%s", event.reason, extra={"event": "stop", "cause": event.cause})
+            raise
+        finally:
+            shared.calibrating = False
+            self._update_state("calibration finished")
+
+    def _calibration_frame(self) -> FrameMsg:
+        frame = self.shared.frames.peek()
+        if frame is None or frame.age_s(self.clock()) > self.shared.config.safety.camera_max_age_s:
+            raise CommandRefusedError("no recent camera frame to calibrate on")
+        return frame
 
     def update_config(self, config: FloornavConfig) -> None:
         """Apply a new configuration live. Only steering, drive limits, safety numbers and
@@ -534,7 +559,7 @@ class Runtime:
                         )
                         self._service_tasks.append(task)
                         self._group_tasks.append(task)
-                    if shared.config.runtime.autostart:
+                    if shared.config.autostarts():
                         self._group_tasks.append(
                             group.create_task(
                                 self._guard("autostart", self._autostart()), name="autostart"

@@ -12,8 +12,9 @@ Two kinds of stop, as robot safety standards name them:
 
 The forward-only layers (too little clearance, a safe zone that is not floor) are
 recorded here too, so the last stop is always explained, but they neither hold nor latch:
-they only take forward motion away and clear as soon as the way is free. The e-stop is
-latched by the command mux, above all of this.
+they only take forward motion away and clear as soon as the way is free. So is a failed
+calibration, which left autonomy off (`StopPolicy.record`: an event, not a state). The
+e-stop is latched by the command mux, above all of this.
 
 What a cause does is data (`STOP_RULES`), in the spirit of twist_mux's priority table.
 """
@@ -47,10 +48,12 @@ STOP_RULES: dict[str, StopRule] = {
     "stale": StopRule(zeroes_motors=True, latches=True, device=False),
     "clearance": StopRule(zeroes_motors=False, latches=False, device=False),
     "not_floor": StopRule(zeroes_motors=False, latches=False, device=False),
+    "calibration": StopRule(zeroes_motors=False, latches=False, device=False),
 }
 """``link``: the Uno is not connected; ``camera``: no recent frame; ``stale``: no recent
 perception or map while exploring; ``clearance``: too little free floor ahead;
-``not_floor``: the safe zone ahead is not floor."""
+``not_floor``: the safe zone ahead is not floor; ``calibration``: a calibration failed
+after it had stopped autonomy, which stays off until started (recorded, never held)."""
 
 
 @dataclass(frozen=True)
@@ -143,6 +146,17 @@ class StopPolicy:
                     f"{self.safety.fault_latch_window_s:g} s)",
                     now_s,
                 )
+        return event
+
+    def record(self, cause: str, reason: str, now_s: float) -> StopEvent:
+        """A one-off stop that is over as it happens (nothing to clear later): counted
+        and remembered as the last stop, never held or latched."""
+        rule = STOP_RULES[cause]
+        if rule.zeroes_motors or rule.latches or rule.device:
+            raise ValueError(f"{cause} stops are observed, not recorded")
+        self.stops_by_cause[cause] += 1
+        event = StopEvent(cause, reason, now_s, self.wall_clock())
+        self.last_stop = event
         return event
 
     def _latch(self, cause: str, reason: str, now_s: float) -> StopEvent:

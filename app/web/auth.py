@@ -1,7 +1,8 @@
 """Bearer-token authentication and the WebSocket Origin check.
 
 HTTP: ``Authorization: Bearer <token>`` on every state-changing request (and on the
-read-only ones when ``web.require_token_for_status``); missing or wrong gives 401 with
+read-only ones when ``web.require_token_for_status``, where the session cookie of
+`app.web.session` also does); missing or wrong gives 401 with
 ``WWW-Authenticate: Bearer``.
 
 WebSockets: browsers cannot set headers on a WebSocket, so a browser offers two
@@ -17,16 +18,24 @@ import os
 import re
 import secrets
 from pathlib import Path
+from typing import Annotated
 from urllib.parse import urlsplit
 
-from fastapi import HTTPException, Request, WebSocket, status
+from fastapi import HTTPException, Request, Security, WebSocket, status
+from fastapi.security import HTTPAuthorizationCredentials, HTTPBearer
 from starlette.datastructures import Headers
 
 from app.config import WEB_TOKEN_PATTERN, FloornavConfig
+from app.web.session import session_cookie_matches
 
 TOKEN_ENV = "FLOORNAV_TOKEN"
 SUBPROTOCOL = "floornav"
 TOKEN_SUBPROTOCOL_PREFIX = "bearer."
+BEARER_SCHEME = HTTPBearer(
+    auto_error=False,
+    scheme_name="bearer",
+    description="The daemon's token (`web.token`, `$FLOORNAV_TOKEN` or `web.token_file`).",
+)
 _DEFAULT_PORTS = {"http": 80, "https": 443, "ws": 80, "wss": 443}
 
 
@@ -134,13 +143,19 @@ class BearerAuth:
                 headers={"WWW-Authenticate": "Bearer"},
             )
 
-    async def require(self, request: Request) -> None:
-        """Dependency of state-changing endpoints."""
+    async def require(
+        self,
+        request: Request,
+        _: Annotated[HTTPAuthorizationCredentials | None, Security(BEARER_SCHEME)] = None,
+    ) -> None:
+        """Dependency of state-changing endpoints (the ``Security`` parameter declares the
+        bearer scheme in OpenAPI; the check itself is `_check`'s, with our 401 body)."""
         self._check(request)
 
     async def require_for_reads(self, request: Request) -> None:
-        """Dependency of read-only endpoints (open unless configured otherwise)."""
-        if self.protect_reads:
+        """Dependency of read-only endpoints (open unless configured otherwise); the
+        session cookie (`app.web.session`) is as good as the header here."""
+        if self.protect_reads and not session_cookie_matches(request.cookies, self.token):
             self._check(request)
 
 

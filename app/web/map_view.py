@@ -25,6 +25,7 @@ from numpy.typing import NDArray
 from app.mapping.frames import GroundGrid, Pose2D
 from app.mapping.occupancy import FREE, OCCUPIED
 from app.runtime import crop_window
+from app.web.schemas import ErrorResponse
 from app.web.service import RobotService
 
 # BGR
@@ -170,7 +171,10 @@ def map_router(service: RobotService, *, dependencies: Sequence[params.Depends] 
     @router.get(
         "/api/map.png",
         response_class=Response,
-        responses={200: {"content": {"image/png": {}}}, 409: {"description": "no map"}},
+        responses={
+            200: {"content": {"image/png": {}}},
+            409: {"model": ErrorResponse, "description": "no map (no floor calibration)"},
+        },
     )
     async def map_png(
         size_m: Annotated[float, Query(ge=1.0, le=40.0)] = 8.0,

@@ -8,7 +8,7 @@ a worker thread and race with them).
 from __future__ import annotations
 
 import asyncio
-import fnmatch
+import contextlib
 from pathlib import Path
 from typing import Annotated, Any
 
@@ -17,7 +17,7 @@ import numpy as np
 from fastapi import APIRouter, Body, Depends, HTTPException, Query, Request, Response
 from numpy.typing import NDArray
 from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
-from pydantic import ValidationError
+from starlette.requests import ClientDisconnect
 
 from app.config import FloornavConfig
 from app.mapping.calibration import (
@@ -28,86 +28,35 @@ from app.mapping.calibration import (
     homography_from_point_pairs,
 )
 from app.mapping.calibration_files import save_floor_calibration
+from app.web.config_patch import (
+    LIVE_KEYS,
+    ConfigConflictError,
+    ConfigPatchError,
+    apply_config_patch,
+    config_patch_model,
+    patch_openapi,
+)
 from app.web.context import WebContext, json_safe
 from app.web.schemas import (
+    BOARD_PATTERN_REGEX,
     ERROR_RESPONSES,
+    ESTOP_OPENAPI,
     REFUSED_RESPONSE,
+    STOP_RESPONSES,
     CalibrationRequest,
     CalibrationResponse,
     ChessboardCalibrationRequest,
     CommandResponse,
-    EstopRequest,
     EstopResetResponse,
     FaultResetResponse,
     TeleopReleaseRequest,
     TeleopRequest,
     check_board_pattern,
+    estop_source,
 )
 from app.web.video import encode_jpeg
 
-LIVE_KEYS = (
-    "steering.*",
-    "drive.max_*",
-    "safety.*",
-    "perception.method",
-    "perception.safe_zone.*",
-    "perception.smoothing_sigma_px",
-)
-"""Dotted configuration keys (``fnmatch`` patterns) that `Runtime.update_config`
-applies while running; everything else needs a restart."""
-PATTERN_REGEX = r"^[0-9]{1,2}x[0-9]{1,2}$"
 PREVIEW_JPEG_QUALITY = 85
-
-
-class ConfigPatchError(ValueError):
-    """A configuration patch names a key that does not exist or is not live."""
-
-
-def is_live_key(key: str) -> bool:
-    """True if the dotted ``key`` may be changed through ``PATCH /api/config``."""
-    return any(fnmatch.fnmatchcase(key, pattern) for pattern in LIVE_KEYS)
-
-
-def _merge(current: dict[str, Any], patch: dict[str, Any], path: str) -> None:
-    for key, value in patch.items():
-        dotted = f"{path}{key}"
-        if key not in current:
-            raise ConfigPatchError(f"{dotted}: not a configuration key")
-        if value is None:
-            raise ConfigPatchError(f"{dotted}: null is not a value (keys cannot be removed)")
-        if isinstance(current[key], dict):
-            if not isinstance(value, dict):
-                raise ConfigPatchError(f"{dotted}: expected an object of this section's keys")
-            _merge(current[key], value, dotted + ".")
-            continue
-        if not is_live_key(dotted):
-            raise ConfigPatchError(
-                f"{dotted}: cannot be changed while running (set it in config.toml and "
-                f"restart); live keys: {', '.join(LIVE_KEYS)}"
-            )
-        current[key] = value
-
-
-def apply_config_patch(config: FloornavConfig, patch: dict[str, Any]) -> FloornavConfig:
-    """A new configuration: ``patch`` (nested sections, like the TOML) merged into
-    ``config`` and validated as a whole.
-
-    Raises
-    ------
-    ConfigPatchError
-        A key is unknown or not live, a value is null, or a value is invalid; the
-        message names the dotted key.
-    """
-    merged = config.model_dump(mode="python")
-    _merge(merged, patch, "")
-    try:
-        return FloornavConfig.model_validate(merged)
-    except ValidationError as exc:
-        problems = []
-        for error in exc.errors():
-            key = ".".join(str(part) for part in error["loc"]) or "<root>"
-            problems.append(f"{key}: {error['msg']}")
-        raise ConfigPatchError("; ".join(problems)) from exc
 
 
 def public_config(config: FloornavConfig) -> dict[str, Any]:
@@ -168,19 +117,27 @@ def build_api_router(ctx: WebContext) -> APIRouter:
         await service.start()
         return command_response()
 
-    @router.post("/api/stop", dependencies=write, tags=["control"], responses=ERROR_RESPONSES)
+    # Stopping never needs a token: an operator without one (a new browser, a phone)
+    # must still be able to stop the robot. Everything that moves it does need one.
+    @router.post("/api/stop", tags=["control"], responses=STOP_RESPONSES)
     async def stop() -> CommandResponse:
-        """Stop exploring; the motors go to zero at once (teleop stays possible)."""
+        """Stop exploring; the motors go to zero at once (teleop stays possible). No token
+        needed."""
         await service.stop()
         return command_response()
 
-    @router.post("/api/estop", dependencies=write, tags=["control"], responses=ERROR_RESPONSES)
-    async def estop(
-        request: Request, body: Annotated[EstopRequest | None, Body()] = None
-    ) -> CommandResponse:
-        """Latch the e-stop (any authenticated client may); zero until reset."""
+    @router.post(
+        "/api/estop", tags=["control"], responses=STOP_RESPONSES, openapi_extra=ESTOP_OPENAPI
+    )
+    async def estop(request: Request) -> CommandResponse:
+        """Latch the e-stop; zero until reset (which needs the token). No token needed.
+        Never refused for its body: the optional ``{"source": label}`` is read as far as
+        it can be (control characters escaped, cut to 64 characters, else ``api``)."""
         client = request.client.host if request.client else "unknown"
-        service.estop(f"{(body or EstopRequest()).source} ({client})")
+        raw = b""
+        with contextlib.suppress(ClientDisconnect):  # latched all the same
+            raw = await request.body()
+        service.estop(f"{estop_source(raw)} ({client})")
         return command_response()
 
     @router.post(
@@ -231,7 +188,8 @@ def build_api_router(ctx: WebContext) -> APIRouter:
     )
     async def calibrate(body: CalibrationRequest) -> CalibrationResponse:
         """Fit the floor homography on the current frame (a chessboard on the floor, or
-        4+ clicked pixels with their floor positions) and save it; the map restarts."""
+        4+ clicked pixels with their floor positions) and save it; the map restarts. With
+        ``save`` false only the fit's errors come back: nothing live changes."""
         intrinsics = service.intrinsics
         detected: dict[str, NDArray[np.float32] | None] = {}
 
@@ -247,8 +205,8 @@ def build_api_router(ctx: WebContext) -> APIRouter:
                 return calibration
             height, width = image.shape[:2]
             return homography_from_point_pairs(
-                np.asarray(body.image_points_px, dtype=np.float64),
-                np.asarray(body.ground_points_m, dtype=np.float64),
+                np.asarray([pair.image_px for pair in body.pairs], dtype=np.float64),
+                np.asarray([pair.ground_m for pair in body.pairs], dtype=np.float64),
                 (width, height),
                 intrinsics=intrinsics,
             )
@@ -258,16 +216,21 @@ def build_api_router(ctx: WebContext) -> APIRouter:
         def save(calibration: FloorCalibration) -> None:
             save_floor_calibration(path, calibration)
 
-        calibration = await service.calibrate_with(fit, save if body.save else None)
+        # save false is a preview: fit and answer, the live calibration stays.
+        calibration = await service.calibrate_with(
+            fit, save if body.save else None, apply=body.save
+        )
         corners = detected.get("corners")
         return CalibrationResponse(
             reprojection_rms_px=calibration.reprojection_rms_px,
             ground_rms_m=calibration.ground_rms_m,
             points=calibration.points,
             inliers=calibration.inliers,
-            image_size=calibration.image_size,
-            board_origin_px=calibration.board_origin_px,
-            corners_px=None if corners is None else [(float(u), float(v)) for u, v in corners],
+            image_size=list(calibration.image_size),
+            board_origin_px=None
+            if calibration.board_origin_px is None
+            else list(calibration.board_origin_px),
+            corners_px=None if corners is None else [[float(u), float(v)] for u, v in corners],
             saved_to=str(path) if body.save else None,
         )
 
@@ -279,7 +242,7 @@ def build_api_router(ctx: WebContext) -> APIRouter:
         responses={200: {"content": {"image/jpeg": {}}}, **ERROR_RESPONSES, **REFUSED_RESPONSE},
     )
     async def calibrate_preview(
-        pattern: Annotated[str | None, Query(pattern=PATTERN_REGEX)] = None,
+        pattern: Annotated[str | None, Query(pattern=BOARD_PATTERN_REGEX)] = None,
     ) -> Response:
         """The newest camera frame as JPEG; with ``pattern`` (COLSxROWS) the detected
         chessboard corners are drawn and their count is in ``X-Chessboard-Corners``."""
@@ -298,12 +261,22 @@ def build_api_router(ctx: WebContext) -> APIRouter:
         """The running configuration (``web.token`` hidden) and the live-key patterns."""
         return public_config(service.config)
 
-    @router.patch("/api/config", dependencies=write, tags=["config"], responses=ERROR_RESPONSES)
+    @router.patch(
+        "/api/config",
+        dependencies=write,
+        tags=["config"],
+        responses={**ERROR_RESPONSES, **REFUSED_RESPONSE},
+        openapi_extra=patch_openapi(config_patch_model(service.config)),
+    )
     async def patch_config(patch: Annotated[dict[str, Any], Body()]) -> dict[str, Any]:
         """Merge nested sections (``{"steering": {"cruise_speed_m_s": 0.2}}``) into the
-        running configuration; only live keys are accepted (422 names any other)."""
+        running configuration. Only live keys, JSON types and the bounds in the schema
+        are accepted (422 names the key); values that are each fine but make an invalid
+        configuration together (a safe zone turned inside out) get 409."""
         try:
             new = apply_config_patch(service.config, patch)
+        except ConfigConflictError as exc:
+            raise HTTPException(409, detail=str(exc)) from exc
         except ConfigPatchError as exc:
             raise HTTPException(422, detail=str(exc)) from exc
         service.update_config(new)

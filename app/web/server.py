@@ -16,7 +16,6 @@ from fastapi import APIRouter, FastAPI
 from app import systemd
 from app.runtime import Runtime
 from app.web.app import create_app
-from app.web.map_view import map_router
 from app.web.viser_proxy import viser_router
 from app.web.viser_view import ViserView
 
@@ -52,13 +51,12 @@ class WebService:
         config = runtime.config
         self.runtime = runtime
         self.view = ViserView(runtime, port=config.viser.port) if config.viser.enabled else None
-        extra = APIRouter()
-        extra.include_router(map_router(runtime))
+        proxy: APIRouter | None = None
         if self.view is not None:
             view = self.view
-            extra.include_router(viser_router(lambda: view.port))
+            proxy = viser_router(lambda: view.port)
         self.app: FastAPI = create_app(
-            runtime, token=token, static_dir=static_dir(), viser_router=extra
+            runtime, token=token, static_dir=static_dir(), viser_router=proxy
         )
         self.app.router.lifespan_context = self._lifespan
         self.server = _EmbeddedServer(
@@ -67,6 +65,9 @@ class WebService:
                 host=config.web.host,
                 port=config.web.port,
                 log_level="warning",
+                # Through our handlers: one format, and client text in uvicorn's
+                # messages gets the same control-character escaping.
+                log_config=None,
                 lifespan="on",
                 ws_max_size=1 << 20,
             )

@@ -178,9 +178,10 @@ class RobotService(Protocol):
     def release_teleop(self, driver: str | None) -> None: ...
 
     async def calibrate_with(
-        self, fit: CalibrationFit, save: CalibrationSave | None
+        self, fit: CalibrationFit, save: CalibrationSave | None, *, apply: bool = True
     ) -> FloorCalibration:
-        """Fit on the newest frame (raises CalibrationError or CommandRefusedError) and save."""
+        """Fit on the newest frame (raises CalibrationError or CommandRefusedError), save
+        and apply it; with ``apply`` false only fit (a preview: nothing live changes)."""
 
     def update_config(self, config: FloornavConfig) -> None:
         """Apply a configuration whose only changes are live keys."""

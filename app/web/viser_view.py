@@ -127,6 +127,20 @@ def camera_floor_footprint(
     return np.array([left_near, right_near, right_far, left_far])
 
 
+def _share_disabled(verbose: bool = True) -> str | None:
+    log.info("viser share link refused: disabled", extra={"event": "viser_share_refused"})
+    return None
+
+
+def disable_share(server: viser.ViserServer) -> None:
+    """No public share link: viser would open a tunnel through share.viser.studio to
+    anyone holding the link. Its ``ShareUrlRequest`` handler calls
+    ``server.request_share_url`` (looked up at each call), so that is replaced on the
+    instance, and the share button is hidden. (The proxy drops those messages too.)"""
+    server.request_share_url = _share_disabled  # type: ignore[method-assign]
+    server.gui.configure_theme(show_share_button=False)
+
+
 @dataclass
 class _Trail:
     """Completed chunks (each its own scene node, never re-sent) and the open one."""
@@ -178,6 +192,7 @@ class ViserView:
     def start(self) -> int:
         """Start the viser server and build the scene's fixed parts; returns the port."""
         server = viser.ViserServer(host=self.host, port=self.requested_port, verbose=False)
+        disable_share(server)
         self.server = server
         port = server.get_port()
         if port != self.requested_port:

@@ -22,10 +22,12 @@ browser should connect with ``?ack=1`` and send ``{"type": "ack", "seq": n}`` af
 drawing each frame: at most N frames are then unacknowledged and each one sent is the
 newest at that moment.
 
-``/ws/control`` (token required): the server first sends ``{"type": "hello", "driver"}``,
-then answers every message ``{"type": "teleop", "v_m_s", "omega_rad_s", "take_over"?}``,
-``{"type": "release" | "estop" | "estop_reset" | "start" | "stop"}`` (each may carry an
-``"id"`` that is echoed) with ``{"type": "ack" | "error", "detail", "state", "id"?}``.
+``/ws/control`` (no token needed to stop): the server first sends ``{"type": "hello",
+"driver", "authenticated"}``; a client without the token may only send ``stop`` and
+``estop``. It then answers every message ``{"type": "teleop", "v_m_s", "omega_rad_s",
+"take_over"?}``, ``{"type": "release" | "estop" | "estop_reset" | "start" | "stop"}``
+(each may carry an ``"id"`` that is echoed) with ``{"type": "ack" | "error", "detail",
+"state", "id"?}``.
 Closing the socket releases that connection's teleop.
 """
 
@@ -50,6 +52,7 @@ from app.runtime import CommandRefusedError
 from app.web.auth import offered_subprotocol, origin_allowed, token_matches, websocket_token
 from app.web.context import WebContext, json_safe
 from app.web.service import RobotService
+from app.web.session import session_cookie_matches
 
 log = logging.getLogger("floornav.web")
 
@@ -58,7 +61,10 @@ MAX_VIDEO_ACK_WINDOW = 8
 
 
 class _Message(BaseModel):
-    model_config = ConfigDict(extra="forbid")
+    """Strict like the REST bodies (`app.web.schemas`): JSON numbers for numbers (an
+    integer will do for a float), ``true``/``false`` for flags."""
+
+    model_config = ConfigDict(extra="forbid", strict=True)
     id: Annotated[str | int | None, Field(union_mode="left_to_right")] = None
     """Echoed in the reply, so a client can match replies to requests."""
 
@@ -85,7 +91,10 @@ async def admit(websocket: WebSocket, ctx: WebContext, *, needs_token: bool) -> 
     if not origin_allowed(websocket.headers.get("origin"), websocket.headers.get("host"), allowed):
         await websocket.close(code=POLICY_VIOLATION, reason="origin not allowed")
         return False
-    if needs_token and not token_matches(websocket_token(websocket), ctx.token):
+    # A read-only socket also takes the dashboard's session cookie (`app.web.session`);
+    # the control socket never does (`has_token` below decides what it may do).
+    reader_ok = not needs_token or has_token(websocket, ctx)
+    if not reader_ok and not session_cookie_matches(websocket.cookies, ctx.token):
         denial = JSONResponse(
             {
                 "detail": "missing or wrong bearer token (subprotocol bearer.<token> or "
@@ -101,6 +110,11 @@ async def admit(websocket: WebSocket, ctx: WebContext, *, needs_token: bool) -> 
         return False
     await websocket.accept(subprotocol=offered_subprotocol(websocket))
     return True
+
+
+def has_token(websocket: WebSocket, ctx: WebContext) -> bool:
+    """True if the client presented the right token (header or subprotocol)."""
+    return token_matches(websocket_token(websocket), ctx.token)
 
 
 async def _until_disconnect(
@@ -265,12 +279,17 @@ def build_ws_router(ctx: WebContext) -> APIRouter:
 
     @router.websocket("/ws/control")
     async def control(websocket: WebSocket) -> None:
-        if not await admit(websocket, ctx, needs_token=True):
+        # Admitted without a token (Origin still checked) so that anyone who can see the
+        # dashboard can stop the robot; such a client may only stop and e-stop.
+        if not await admit(websocket, ctx, needs_token=False):
             return
+        authenticated = has_token(websocket, ctx)
         driver = f"ws-{next(_driver_numbers)}"
         metrics.control_clients.inc()
         try:
-            await websocket.send_json({"type": "hello", "driver": driver})
+            await websocket.send_json(
+                {"type": "hello", "driver": driver, "authenticated": authenticated}
+            )
             while True:
                 message = await websocket.receive()
                 if message["type"] == "websocket.disconnect":
@@ -279,7 +298,7 @@ def build_ws_router(ctx: WebContext) -> APIRouter:
                 if text is None:
                     reply = {"type": "error", "detail": "send JSON text messages"}
                 else:
-                    reply = await handle_control(service, driver, text)
+                    reply = await handle_control(service, driver, text, authenticated=authenticated)
                 await websocket.send_text(json.dumps(reply))
         except (WebSocketDisconnect, OSError):
             pass
@@ -290,20 +309,42 @@ def build_ws_router(ctx: WebContext) -> APIRouter:
     return router
 
 
-async def handle_control(service: RobotService, driver: str, text: str) -> dict[str, Any]:
-    """Carry out one control message; the reply is ``{"type": "ack" | "error", ...}``."""
+TOKENLESS_CONTROL = frozenset({"stop", "estop"})
+"""Control messages a client without the token may send: the ones that stop the robot."""
+
+
+async def handle_control(
+    service: RobotService, driver: str, text: str, *, authenticated: bool = True
+) -> dict[str, Any]:
+    """Carry out one control message; the reply is ``{"type": "ack" | "error", ...}``.
+    Without ``authenticated`` only `TOKENLESS_CONTROL` messages are carried out."""
     try:
         message = _CONTROL_ADAPTER.validate_json(text)
     except ValidationError as exc:
         error: dict[str, Any] = {"type": "error", "detail": _validation_message(exc)}
-        with contextlib.suppress(ValueError):
+        raw: Any = None
+        with contextlib.suppress(ValueError, RecursionError):
             raw = json.loads(text)
-            if isinstance(raw, dict) and isinstance(raw.get("id"), str | int):
+        if isinstance(raw, dict):
+            if isinstance(raw.get("id"), str | int):
                 error["id"] = raw["id"]
+            if raw.get("type") == "estop":
+                # An e-stop is never refused for its form (an extra field, an odd id).
+                service.estop(f"websocket {driver}")
+                error.update(type="ack", detail="estop", warning=error["detail"])
+                error["state"] = service.state.value
         return error
     reply: dict[str, Any] = {"type": "ack", "detail": message.type}
     if message.id is not None:
         reply["id"] = message.id
+    if not authenticated and message.type not in TOKENLESS_CONTROL:
+        reply.update(
+            type="error",
+            detail=f"{message.type} needs the token (subprotocol bearer.<token>); "
+            "without it this socket can only stop and e-stop",
+            state=service.state.value,
+        )
+        return reply
     try:
         if isinstance(message, TeleopMessage):
             service.teleop(driver, message.v_m_s, message.omega_rad_s, take_over=message.take_over)

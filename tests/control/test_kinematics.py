@@ -35,10 +35,12 @@ def test_pwm_inverts_the_simulated_motor_model() -> None:
 
 
 def test_limits_keep_the_curvature() -> None:
+    # Within the body limits (0.5 m/s, 5 rad/s: the most the wheels allow), but the
+    # outer wheel would need 0.4 + 2.0 * 0.1 = 0.6 m/s: both are scaled down together.
     drive = DriveConfig(
-        max_linear_speed_m_s=2.0, max_angular_speed_rad_s=10.0, max_wheel_speed_m_s=0.5
+        max_linear_speed_m_s=0.5, max_angular_speed_rad_s=5.0, max_wheel_speed_m_s=0.5
     )
-    limited = limit_twist(Twist(1.0, 5.0), drive)
+    limited = limit_twist(Twist(0.4, 2.0), drive)
     left, right = wheel_speeds(limited, drive.wheel_base_m)
     assert max(abs(left), abs(right)) == pytest.approx(0.5)
     assert limited.omega_rad_s / limited.v_m_s == pytest.approx(5.0)

@@ -163,7 +163,7 @@ async def test_a_safe_zone_that_is_not_floor_stops_forward_motion_until_it_is_ag
         return made[-1]
 
     # No clearance stop: what holds the robot back here is the premise alone.
-    config = sim_config(safety={"min_clearance_m": 0.0})
+    config = sim_config(safety={"min_clearance_m": 0.0, "min_clearance_floor_m": 0.0})
     async with running(config, segmenter_factory=factory) as (rt, _):
         sim = rt.devices.sim
         assert sim is not None and sim.uno is not None

@@ -2,8 +2,9 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator
+from collections.abc import Iterator, Mapping
 from pathlib import Path
+from types import MappingProxyType
 
 import pytest
 from fastapi import FastAPI
@@ -15,7 +16,9 @@ from app.web import create_app
 from .fakes import FakeService
 
 TOKEN = "test-token-0123456789abcdef"
-AUTH = {"Authorization": f"Bearer {TOKEN}"}
+# Read-only: Starlette's TestClient writes the handshake's headers into a dict passed to
+# websocket_connect, which would leak them into every later request using it.
+AUTH: Mapping[str, str] = MappingProxyType({"Authorization": f"Bearer {TOKEN}"})
 
 
 @pytest.fixture

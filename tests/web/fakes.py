@@ -160,14 +160,16 @@ class FakeService:
         self.calls.append(("release_teleop", driver))
 
     async def calibrate_with(
-        self, fit: CalibrationFit, save: CalibrationSave | None
+        self, fit: CalibrationFit, save: CalibrationSave | None, *, apply: bool = True
     ) -> FloorCalibration:
-        self.calls.append(("calibrate",))
+        self.calls.append(("calibrate",) if apply else ("calibrate", "preview"))
         self._maybe_refuse("calibrate")
         frame = self.frames.peek()
         if frame is None:
             raise CommandRefusedError("no recent camera frame to calibrate on")
         calibration = fit(frame.image)
+        if not apply:
+            return calibration
         if save is not None:
             save(calibration)
         self.calibration = calibration

@@ -143,11 +143,11 @@ def test_oversized_body_without_token_gets_413_not_401(client: TestClient) -> No
 
 
 def test_body_just_under_the_limit_still_meets_the_token_check(client: TestClient) -> None:
-    small = json.dumps({"source": "padded"}).encode()
+    small = json.dumps({"driver": "padded"}).encode()
     padded = small + b" " * (MAX_REQUEST_BODY_BYTES - 1 - len(small))  # valid JSON
     assert len(padded) == MAX_REQUEST_BODY_BYTES - 1
     response = client.post(
-        "/api/estop",
+        "/api/teleop/release",
         content=padded,
         headers={"content-type": "application/json", "Authorization": "Bearer wrong-token-0123"},
     )

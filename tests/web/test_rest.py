@@ -31,8 +31,6 @@ JSON = {"content-type": "application/json"}
 
 STATE_CHANGING: list[tuple[str, str, dict[str, Any] | None]] = [
     ("POST", "/api/start", None),
-    ("POST", "/api/stop", None),
-    ("POST", "/api/estop", None),
     ("POST", "/api/estop/reset", None),
     ("POST", "/api/fault/reset", None),
     ("POST", "/api/teleop", {"v_m_s": 0.1, "omega_rad_s": 0.0}),
@@ -62,6 +60,20 @@ def test_state_changing_endpoints_need_the_token(
     assert response.headers["www-authenticate"] == "Bearer"
     assert "token" in response.json()["detail"]
     assert service.calls == []
+
+
+@pytest.mark.parametrize("path", ["/api/stop", "/api/estop"])
+@pytest.mark.parametrize(
+    "headers",
+    [{}, {"Authorization": "Bearer wrong-token-0123456789"}, AUTH],
+    ids=["missing", "wrong", "right"],
+)
+def test_stopping_needs_no_token(
+    client: TestClient, service: FakeService, path: str, headers: dict[str, str]
+) -> None:
+    response = client.post(path, headers=headers)
+    assert response.status_code == 200
+    assert [name for name, *_ in service.calls] == [path.removeprefix("/api/")]
 
 
 def test_status_is_open_and_strict_json(client: TestClient) -> None:
@@ -212,7 +224,6 @@ def test_config_patch_of_live_keys(client: TestClient, service: FakeService) -> 
         ({"steering": {"cruise_speed_m_s": "fast"}}, "steering.cruise_speed_m_s"),
         ({"steering": {"cruise_speed_m_s": None}}, "steering.cruise_speed_m_s"),
         ({"perception": {"method": "magic"}}, "perception.method"),
-        ({"perception": {"safe_zone": {"top_y_frac": 1.0}}}, "top_y_frac"),  # shape rule
         ({"steering": 3}, "steering"),
     ],
 )
@@ -225,9 +236,26 @@ def test_config_patch_rejections_name_the_key(
     assert service.calls == []
 
 
+def test_values_that_conflict_with_the_running_configuration_get_409(
+    client: TestClient, service: FakeService
+) -> None:
+    # Each value is within its bounds; together they turn the safe zone inside out.
+    response = client.patch(
+        "/api/config", headers=AUTH, json={"perception": {"safe_zone": {"top_y_frac": 1.0}}}
+    )
+    assert response.status_code == 409, response.text
+    assert "top_y_frac" in response.json()["detail"]
+    assert service.calls == []
+
+
 def test_config_patch_body_must_be_an_object(client: TestClient) -> None:
     response = client.patch("/api/config", headers={**AUTH, **JSON}, content="[1]")
     assert response.status_code == 422 and response.json()["detail"]
+
+
+def pairs(pixels: list[Any], ground: list[Any]) -> list[dict[str, Any]]:
+    """The point-pair calibration body's ``pairs``."""
+    return [{"image_px": u, "ground_m": g} for u, g in zip(pixels, ground, strict=True)]
 
 
 def board_image() -> np.ndarray:
@@ -257,8 +285,7 @@ def test_calibrate_with_point_pairs_without_saving(
     service.publish_frame(board_image())
     pixels = apply_homography(camera_homography(), GROUND)
     body = {
-        "image_points_px": pixels.tolist(),
-        "ground_points_m": GROUND.tolist(),
+        "pairs": pairs(pixels.tolist(), GROUND.tolist()),
         "save": False,
     }
     response = client.post("/api/calibrate", headers=AUTH, json=body)
@@ -276,8 +303,9 @@ def test_calibrate_with_point_pairs_without_saving(
         {"pattern": "seven", "square_m": 0.04},
         {"pattern": "2x2", "square_m": 0.04},  # OpenCV's detector raises below 3x3
         {"pattern": "7x5", "square_m": 0.04, "board_yaw_rad": float("nan")},
-        {"image_points_px": [[1, 2]] * 3, "ground_points_m": [[1, 2]] * 3},
-        {"image_points_px": [[1, 2]] * 4, "ground_points_m": [[1, 2]] * 5},
+        {"pairs": pairs([[1, 2]] * 3, [[1, 2]] * 3)},  # too few
+        {"pairs": [{"image_px": [1, 2]}] * 4},  # a pixel without its floor position
+        {"image_points_px": [[1, 2]] * 4, "ground_points_m": [[1, 2]] * 4},  # old shape
         {},
     ],
 )
@@ -291,22 +319,20 @@ def test_bad_calibration_bodies_are_422(
     assert service.calls == []
 
 
-def test_calibration_failures_are_422_with_the_reason(
+def test_calibration_failures_are_409_with_the_reason(
     client: TestClient, service: FakeService
 ) -> None:
     service.publish_frame(np.full((HEIGHT, WIDTH, 3), 128, np.uint8))  # no board
     response = client.post(
         "/api/calibrate", headers=AUTH, json={"pattern": "7x5", "square_m": SQUARE_M}
     )
-    assert response.status_code == 422
+    assert response.status_code == 409
     assert "not found" in response.json()["detail"]
     # Degenerate pairs (all on a line) are refused by the fit, not by the schema.
     line = [[100.0 + 10 * i, 300.0] for i in range(4)]
     ground = [[0.5, 0.1 * i] for i in range(4)]
-    response = client.post(
-        "/api/calibrate", headers=AUTH, json={"image_points_px": line, "ground_points_m": ground}
-    )
-    assert response.status_code == 422 and response.json()["detail"]
+    response = client.post("/api/calibrate", headers=AUTH, json={"pairs": pairs(line, ground)})
+    assert response.status_code == 409 and response.json()["detail"]
 
 
 def test_calibration_without_a_frame_is_409(client: TestClient) -> None:

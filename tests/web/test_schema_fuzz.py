@@ -3,18 +3,23 @@ the server fail (no 5xx), with the token and without."""
 
 from __future__ import annotations
 
+import subprocess
+import sys
 import tempfile
+import threading
+import time
 from pathlib import Path
 
 import pytest
 import schemathesis
+import uvicorn
 from hypothesis import HealthCheck, settings
 from schemathesis.checks import not_a_server_error
 
 from app.config import FloornavConfig
 from app.web import create_app
 
-from ..conftest import room_scene
+from ..conftest import free_port, room_scene
 from .conftest import AUTH, TOKEN
 from .fakes import FakeService, floor_msg
 
@@ -48,3 +53,50 @@ def test_no_server_errors_with_the_token(case: schemathesis.Case) -> None:
 @settings(max_examples=5, deadline=None, suppress_health_check=list(HealthCheck))
 def test_no_server_errors_without_the_token(case: schemathesis.Case) -> None:
     case.call_and_validate(checks=[not_a_server_error])
+
+
+@pytest.mark.slow  # about a minute: every check, every phase, 25 examples per operation
+def test_the_whole_contract_holds(tmp_path: Path) -> None:
+    """schemathesis's CLI with every check (status codes, bodies against their schemas,
+    schema-valid requests accepted and invalid ones refused, ``Allow`` on 405s, auth
+    honoured) over every operation, against the app served by uvicorn."""
+    port = free_port()
+    server = uvicorn.Server(
+        uvicorn.Config(_app, host="127.0.0.1", port=port, log_level="error", lifespan="off")
+    )
+    thread = threading.Thread(target=server.run, daemon=True)
+    thread.start()
+    try:
+        deadline = time.monotonic() + 30.0
+        while not server.started and time.monotonic() < deadline:
+            time.sleep(0.05)
+        assert server.started, "uvicorn did not start"
+        result = subprocess.run(
+            [
+                str(Path(sys.executable).with_name("st")),
+                "run",
+                f"http://127.0.0.1:{port}/openapi.json",
+                "--header",
+                f"Authorization: {AUTH['Authorization']}",
+                "--checks",
+                "all",
+                "--max-examples",
+                "25",
+                "--seed",
+                "1",
+                "--workers",
+                "1",
+                "--generation-database",
+                "none",
+                "--no-color",
+            ],
+            capture_output=True,
+            text=True,
+            timeout=600,
+            cwd=tmp_path,  # its report folder stays out of the checkout
+            check=False,
+        )
+    finally:
+        server.should_exit = True
+        thread.join(timeout=10.0)
+    assert result.returncode == 0, result.stdout[-6000:] + result.stderr[-2000:]

@@ -119,7 +119,7 @@ def control_exchange(socket: WebSocketTestSession, message: dict[str, Any]) -> d
 
 
 def test_control_socket_commands(client: TestClient, service: FakeService) -> None:
-    with client.websocket_connect("/ws/control", headers=AUTH) as socket:
+    with client.websocket_connect("/ws/control", headers=dict(AUTH)) as socket:
         hello = socket.receive_json()
         driver = hello["driver"]
         reply = control_exchange(
@@ -148,8 +148,8 @@ def test_control_socket_commands(client: TestClient, service: FakeService) -> No
 
 def test_each_control_connection_is_its_own_driver(client: TestClient) -> None:
     with (
-        client.websocket_connect("/ws/control", headers=AUTH) as first,
-        client.websocket_connect("/ws/control", headers=AUTH) as second,
+        client.websocket_connect("/ws/control", headers=dict(AUTH)) as first,
+        client.websocket_connect("/ws/control", headers=dict(AUTH)) as second,
     ):
         assert first.receive_json()["driver"] != second.receive_json()["driver"]
 
@@ -169,7 +169,7 @@ def test_each_control_connection_is_its_own_driver(client: TestClient) -> None:
 def test_control_errors_keep_the_connection(
     client: TestClient, service: FakeService, message: str, named: str
 ) -> None:
-    with client.websocket_connect("/ws/control", headers=AUTH) as socket:
+    with client.websocket_connect("/ws/control", headers=dict(AUTH)) as socket:
         socket.receive_json()
         socket.send_text(message)
         reply = socket.receive_json()
@@ -184,7 +184,7 @@ def test_control_errors_keep_the_connection(
 
 def test_refused_control_commands_are_errors(client: TestClient, service: FakeService) -> None:
     service.refuse = {"teleop": "e-stop is latched: reset it first"}
-    with client.websocket_connect("/ws/control", headers=AUTH) as socket:
+    with client.websocket_connect("/ws/control", headers=dict(AUTH)) as socket:
         socket.receive_json()
         reply = control_exchange(socket, {"type": "teleop", "v_m_s": 0.1, "omega_rad_s": 0})
         assert reply["type"] == "error" and reply["detail"] == "e-stop is latched: reset it first"
