@@ -1,16 +1,27 @@
 // floornav dashboard: plain JavaScript, no build step, no network beyond the daemon.
 //
 // Sockets: /ws/telemetry (status JSON ~10 Hz), /ws/video (a JSON header, then the JPEG),
-// /ws/control (teleop, e-stop, start/stop; needs the token). REST for the rest.
+// /ws/control (teleop, e-stop, start/stop). REST for the rest.
 // Browsers cannot set headers on WebSockets, so the token travels as the subprotocol
-// "bearer.<token>" next to "floornav" (the server selects "floornav").
+// "bearer.<token>" next to "floornav" (the server selects "floornav"). The control
+// socket admits a client without the token too; such a client may only stop and e-stop.
+//
+// Stopping is always possible: the E-STOP is the first element of the page, its header
+// stays above every dialog (dialogs are opened with show(), never showModal(), which
+// would make the rest of the page inert), it needs no token, and the space bar fires it
+// from any focus but a text field.
+//
+// No inline scripts, handlers or style attributes: the page runs under
+// Content-Security-Policy default-src 'self' (element.style from here is allowed).
 "use strict";
 
 const TOKEN_KEY = "floornav.token";
 const TELEOP_HZ = 15;
 const MAP_PERIOD_MS = 500;
 const GAMEPAD_DEADZONE = 0.15;
+const PAD_DEADZONE = 0.18;
 const LATENCY_WINDOW = 120;
+const ESTOP_ACK_TIMEOUT_MS = 250; // no ack over the socket by then: POST it as well
 
 const $ = (id) => document.getElementById(id);
 
@@ -23,6 +34,11 @@ const stats = {
   status: null,
   controlReplies: [],
   me: null,
+  authenticated: false,
+  estops: [], // {via: "socket" | "post", wall_ms: when it was sent (epoch ms)}
+  teleopSent: 0,
+  zeroSentWallMs: null, // when the last let-go zero went out (epoch ms)
+  session: null, // HTTP status of the last POST /api/session
 };
 window.floornav = stats;
 
@@ -58,26 +74,71 @@ function socketUrl(path) {
   return scheme + "//" + window.location.host + path;
 }
 
-function openTokenDialog(message) {
+// -- dialogs: non-modal, below the header ----------------------------------------------
+
+function updateScrim() {
+  $("scrim").hidden = !document.querySelector("dialog[open]");
+}
+
+/** Open a dialog without making the page inert. ``focusEl``: what gets the focus (null:
+ * nothing in the dialog, so the space bar still e-stops at once). */
+function openDialog(id, focusEl) {
+  const dialog = $(id);
+  const before = document.activeElement;
+  if (!dialog.open) dialog.show();
+  updateScrim();
+  if (focusEl) {
+    focusEl.focus();
+  } else if (dialog.contains(document.activeElement)) {
+    // show() may have focused the first field: give it back.
+    if (before && before !== document.body && !dialog.contains(before)) before.focus();
+    else document.activeElement.blur();
+  }
+}
+
+function closeDialog(id) {
+  const dialog = $(id);
+  if (dialog.open) dialog.close();
+  updateScrim();
+}
+
+function closeOpenDialogs() {
+  let closed = false;
+  for (const dialog of document.querySelectorAll("dialog[open]")) {
+    dialog.close();
+    closed = true;
+  }
+  updateScrim();
+  return closed;
+}
+
+function openTokenDialog(message, { focus = true } = {}) {
   $("token-message").textContent = message || "";
   $("token-message").className = message ? "message bad" : "message";
   $("token-input").value = token();
-  const dialog = $("token-dialog");
-  if (!dialog.open) dialog.showModal();
-  $("token-input").focus();
+  openDialog("token-dialog", focus ? $("token-input") : null);
 }
 
-async function checkToken() {
-  if (!token()) {
-    setControlLink("off", "no token");
-    return false;
-  }
+async function checkToken({ prompt = true } = {}) {
+  if (!token()) return false;
   const reply = await api("GET", "/api/auth", undefined, { quiet401: true });
   if (reply.status === 401) {
-    openTokenDialog("The saved token was refused; enter the daemon's current token.");
+    if (prompt) openTokenDialog("The saved token was refused; enter the daemon's current token.", { focus: false });
     return false;
   }
   return reply.ok;
+}
+
+/** The HttpOnly cookie that opens /viser/ (the 3D view), for a valid token. */
+async function openSession() {
+  if (!token()) return;
+  const reply = await api("POST", "/api/session", undefined, { quiet401: true });
+  stats.session = reply.status;
+}
+
+async function closeSession() {
+  const reply = await api("DELETE", "/api/session", undefined, { quiet401: true });
+  stats.session = reply.status;
 }
 
 // -- REST -------------------------------------------------------------------------------
@@ -125,38 +186,170 @@ function fmt(value, digits = 0) {
   return value === null || value === undefined || Number.isNaN(value) ? "–" : Number(value).toFixed(digits);
 }
 
+function pad2(n) {
+  return String(n).padStart(2, "0");
+}
+
+/** Wall time (epoch seconds) as the local HH:MM:SS. */
+function clockTime(t) {
+  if (typeof t !== "number") return "–";
+  const d = new Date(t * 1000);
+  return `${pad2(d.getHours())}:${pad2(d.getMinutes())}:${pad2(d.getSeconds())}`;
+}
+
+/** Write only what changed: telemetry comes ten times a second, and an unchanged
+ * write still makes the browser lay the page out again. */
+function setText(el, text) {
+  if (el.textContent !== text) el.textContent = text;
+}
+
 function setCell(id, text, kind) {
   const el = $(id);
-  el.textContent = text;
-  el.className = kind || "";
+  setText(el, text);
+  const className = kind || "";
+  if (el.className !== className) el.className = className;
+}
+
+// When a stop carries no time of its own, the time this page first saw it.
+const firstSeen = new Map();
+
+function seenSince(key, active) {
+  if (!active) {
+    firstSeen.delete(key);
+    return null;
+  }
+  if (!firstSeen.has(key)) firstSeen.set(key, Date.now() / 1000);
+  return firstSeen.get(key);
+}
+
+function lastTransitionTo(s, state) {
+  const list = s.transitions || [];
+  for (let i = list.length - 1; i >= 0; i--) {
+    if (list[i].to === state) return list[i].t;
+  }
+  return null;
+}
+
+/** One line of the stop panel: "<label> — HH:MM:SS · detail", or hidden (label null). */
+function setStopLine(id, label, time, detail) {
+  const line = $(id);
+  if (label === null) {
+    line.hidden = true;
+    return;
+  }
+  line.hidden = false;
+  const rest = (typeof time === "number" ? " — " + clockTime(time) : "") + (detail ? " · " + detail : "");
+  const text = line.querySelector(".stop-text");
+  if (text.textContent === label + rest) return;
+  line.title = label + rest;
+  const strong = document.createElement("b");
+  strong.textContent = label;
+  text.replaceChildren(strong, document.createTextNode(rest));
+}
+
+const PROTECTIVE_CAUSES = {
+  link: "Uno link",
+  camera: "camera",
+  stale: "perception or map too old",
+};
+
+// A failed calibration stops autonomy; shown until autonomy runs again (a later
+// status still naming it as the last stop does not bring it back).
+let calibrationFailure = null;
+let calibrationFailureDone = null; // the time of the failure autonomy has run after
+
+/** What holds the robot, each with its reason and time. Returns a one-line summary of
+ * the stop (null when nothing stops it) for the health table. */
+function renderStops(s) {
+  let stoppedBy = null;
+  const last = s.last_stop;
+
+  // (d) the e-stop, latched until reset.
+  const estopped = s.state === "estopped" || Boolean(s.estop);
+  const estopTime = estopped ? (lastTransitionTo(s, "estopped") ?? seenSince("estop", true)) : seenSince("estop", false);
+  setStopLine("stop-estop", estopped ? "E-STOP latched" : null, estopTime,
+    (s.estop || "e-stop") + " · motors at zero until Reset e-stop");
+  if (estopped) stoppedBy = "e-stop: " + (s.estop || "latched");
+
+  // (c) a latched fault.
+  const fault = s.fault_latched || (s.fault ? { cause: null, reason: s.fault } : null);
+  if (fault) {
+    const faultTime = typeof fault.t === "number" ? fault.t : (lastTransitionTo(s, "fault") ?? seenSince("fault", true));
+    setStopLine("stop-fault", "Fault latched" + (fault.cause ? ` (${fault.cause})` : ""), faultTime,
+      fault.reason + " · motors held at zero: fix the cause, then Reset fault and Start");
+    stoppedBy = stoppedBy || "fault: " + fault.reason;
+  } else {
+    seenSince("fault", false);
+    setStopLine("stop-fault", null);
+  }
+
+  // (a) a protective stop (clears by itself) and (b) forward motion cut.
+  const cause = s.stop_cause;
+  const protective = cause && cause !== "fault" && cause !== "clearance" && cause !== "not_floor";
+  if (protective) {
+    const own = last && last.cause === cause && !last.latched ? last.t : null;
+    const time = own ?? lastTransitionTo(s, "protective_stop") ?? seenSince("protective:" + cause, true);
+    setStopLine("stop-protective", `Protective stop: ${PROTECTIVE_CAUSES[cause] || cause}`, time,
+      (s.stop_reason || cause) + " · clears by itself");
+    stoppedBy = stoppedBy || `protective stop (${cause}): ${s.stop_reason || ""}`;
+  } else {
+    for (const key of firstSeen.keys()) if (key.startsWith("protective:")) firstSeen.delete(key);
+    setStopLine("stop-protective", null);
+  }
+  if (cause === "clearance") {
+    const time = last && last.cause === "clearance" ? last.t : seenSince("clearance", true);
+    const ahead = typeof s.clearance_ahead_m === "number" ? fmt(s.clearance_ahead_m, 2) + " m ahead" : "too close";
+    setStopLine("stop-blocked", "blocked: " + ahead, time,
+      (s.stop_reason || "too little clearance") + " · turning and reversing still work");
+    stoppedBy = stoppedBy || "blocked: " + ahead;
+  } else if (cause === "not_floor") {
+    const time = last && last.cause === "not_floor" ? last.t : seenSince("not_floor", true);
+    setStopLine("stop-blocked", "blocked: safe zone is not floor", time, s.stop_reason || "");
+    stoppedBy = stoppedBy || "blocked: safe zone is not floor";
+  } else {
+    seenSince("clearance", false);
+    seenSince("not_floor", false);
+    setStopLine("stop-blocked", null);
+  }
+
+  // (e) calibration failed (autonomy off), or no calibration at all.
+  if (last && last.cause === "calibration" && last.t !== calibrationFailureDone) {
+    calibrationFailure = { t: last.t, reason: last.reason };
+  }
+  if (s.autonomous && calibrationFailure) {
+    calibrationFailureDone = calibrationFailure.t;
+    calibrationFailure = null;
+  }
+  if (calibrationFailure) {
+    const reason = calibrationFailure.reason.replace(/^calibration failed:\s*/i, "");
+    setStopLine("stop-calibration", "Calibration failed", calibrationFailure.t,
+      /autonomy/i.test(reason) ? reason : reason + " · autonomy off: start it again when ready");
+    stoppedBy = stoppedBy || "a failed calibration (autonomy off)";
+  } else if (s.calibration_problem && !s.calibration) {
+    setStopLine("stop-calibration", "No floor calibration", seenSince("calibration", true),
+      s.calibration_problem + " · autonomy off (teleop works)");
+  } else {
+    seenSince("calibration", false);
+    setStopLine("stop-calibration", null);
+  }
+
+  // (f) the last stop of any kind.
+  setStopLine("stop-last", last ? `last stop: ${last.cause}` : null, last ? last.t : null,
+    last ? last.reason + (last.latched ? " (latched)" : "") : "");
+
+  $("estop-reset").disabled = !estopped;
+  return stoppedBy;
 }
 
 function renderStatus(s) {
   stats.status = s;
   const state = $("state");
-  state.textContent = s.state + (s.autonomous && s.state !== "running" ? " (autonomy on)" : "");
-  state.className = "state state-" + s.state;
+  setText(state, s.state + (s.autonomous && s.state !== "running" ? " (autonomy on)" : ""));
+  if (state.className !== "state state-" + s.state) state.className = "state state-" + s.state;
 
-  const banner = $("banner");
-  if (s.state === "estopped") {
-    banner.hidden = false;
-    banner.className = "banner bad";
-    banner.textContent = "E-STOP latched: " + (s.estop || "") + ". Reset it to drive again.";
-  } else if (s.fault) {
-    banner.hidden = false;
-    banner.className = "banner bad";
-    banner.textContent = "Fault latched, motors held at zero: " + s.fault +
-      ". Fix the cause, then Reset fault and Start.";
-  } else if (s.stop_reason && s.stop_cause !== "clearance") {
-    // A protective stop: it clears by itself, so a warning rather than an alarm.
-    banner.hidden = false;
-    banner.className = "banner";
-    banner.textContent = "Protective stop (clears by itself): " + s.stop_reason;
-  } else {
-    banner.hidden = true;
-  }
+  const stoppedBy = renderStops(s);
 
-  $("frame-age").textContent = fmt(s.frame_age_ms);
+  setText($("frame-age"), fmt(s.frame_age_ms));
   const cam = s.camera || {};
   setCell("h-camera", (cam.ok ? "ok" : cam.state || "?") + (cam.detail ? " · " + cam.detail : "") +
     (cam.description ? " · " + cam.description : ""), cam.ok ? "ok" : "bad");
@@ -173,15 +366,20 @@ function renderStatus(s) {
   setCell("h-zone", typeof s.zone_floor_confidence === "number"
     ? fmt(s.zone_floor_confidence * 100) + " %" + (zoneLow ? " · not floor (below " + fmt(zoneMin * 100) + " %)" : "")
     : "–", zoneLow ? "bad" : (typeof s.zone_floor_confidence === "number" ? "ok" : ""));
-  setCell("h-stop", s.stop_reason || "none", s.stop_reason ? "warn" : "");
+  const estopped = s.state === "estopped";
+  setCell("h-stop", estopped ? "e-stop latched: " + (s.estop || "") : (s.stop_reason || "none"),
+    estopped ? "bad" : (s.stop_reason ? "warn" : ""));
   const c = s.command;
   setCell("h-command", c ? `${fmt(c.v_m_s, 2)} m/s · ${fmt(c.omega_rad_s, 2)} rad/s · PWM ${c.left_pwm}/${c.right_pwm} · ${c.source}` : "none yet");
   setCell("h-calibration", s.calibration ? "reprojection RMS " + fmt(s.calibration.reprojection_rms_px, 2) + " px"
     : (s.calibration_problem || "none"), s.calibration ? "ok" : "warn");
-  setCell("h-fault", s.fault || "none", s.fault ? "bad" : "ok");
+  // Never "none" while something stops the robot: say what does.
+  if (s.fault) setCell("h-fault", s.fault, "bad");
+  else if (stoppedBy) setCell("h-fault", "not latched · stopped by " + stoppedBy, "warn");
+  else setCell("h-fault", "none", "ok");
   const last = s.last_stop;
-  setCell("h-last-stop", last ? `${last.cause}: ${last.reason} · ${fmt(last.age_s, 0)} s ago` +
-    (last.latched ? " · latched" : "") : "none", last && last.latched ? "bad" : "");
+  setCell("h-last-stop", last ? `${last.cause}: ${last.reason} · ${clockTime(last.t)} (${fmt(last.age_s, 0)} s ago)` +
+    (last.latched ? " · latched" : "") : "none yet", last && last.latched ? "bad" : "");
   setCell("h-estops", fmt(s.estops));
 
   const body = $("stages").tBodies[0];
@@ -194,20 +392,20 @@ function renderStatus(s) {
       row.appendChild(document.createElement("th"));
       row.appendChild(document.createElement("td"));
     }
-    row.cells[0].textContent = name;
-    row.cells[1].textContent = fmt(stages[name], 2);
+    setText(row.cells[0], name);
+    setText(row.cells[1], fmt(stages[name], 2));
   });
 
   const p = s.pose || {};
-  $("pose").textContent = `${fmt(p.x_m, 2)}, ${fmt(p.y_m, 2)} m · ${fmt((p.theta_rad || 0) * 180 / Math.PI)}°`;
-  $("distance").textContent = fmt(s.distance_m, 2);
+  setText($("pose"), `${fmt(p.x_m, 2)}, ${fmt(p.y_m, 2)} m · ${fmt((p.theta_rad || 0) * 180 / Math.PI)}°`);
+  setText($("distance"), fmt(s.distance_m, 2));
   const f = s.frontier;
-  $("frontier").textContent = f
+  setText($("frontier"), f
     ? [f.goal_xy ? `goal ${fmt(f.goal_xy[0], 2)}, ${fmt(f.goal_xy[1], 2)} m` : "", f.reason, `${f.clusters} clusters`]
       .filter(Boolean).join(" · ")
-    : "not searched yet";
+    : "not searched yet");
 
-  $("teleop-driver").textContent = s.teleop_driver || "nobody";
+  setText($("teleop-driver"), s.teleop_driver || "nobody");
   const other = s.teleop_driver && stats.me && s.teleop_driver !== stats.me;
   if (other) {
     $("takeover-box").hidden = false;
@@ -215,9 +413,7 @@ function renderStatus(s) {
   } else if (!teleop.refused) {
     $("takeover-box").hidden = true;
   }
-  $("estop-reset").disabled = s.state !== "estopped";
-  $("fault-reset").hidden = !s.fault;
-  $("start").disabled = s.autonomous || s.state === "estopped";
+  $("start").disabled = s.autonomous || estopped;
   $("stop").disabled = !s.autonomous;
 }
 
@@ -251,7 +447,7 @@ function connectTelemetry() {
 
 // -- video ------------------------------------------------------------------------------
 
-const video = { ws: null, header: null, url: null, arrivals: [] };
+const video = { ws: null, header: null, url: null, arrivals: [], size: null };
 
 function median(values) {
   if (!values.length) return null;
@@ -317,6 +513,10 @@ function showFrame(blob, header, ws) {
     $("video-fps").textContent = fmt(video.arrivals.length / 2, 1);
     $("video-method").textContent = header.method ? "· " + header.method : "";
     if (previous) URL.revokeObjectURL(previous);
+    if (!video.size || video.size[0] !== img.naturalWidth || video.size[1] !== img.naturalHeight) {
+      video.size = [img.naturalWidth, img.naturalHeight];
+      layoutZoneSvg();
+    }
   };
   img.src = url;
 }
@@ -349,54 +549,174 @@ async function refreshMap() {
   setTimeout(refreshMap, document.hidden ? 2000 : MAP_PERIOD_MS);
 }
 
-// -- control socket, teleop -------------------------------------------------------------
+// -- control socket ---------------------------------------------------------------------
 
-const control = { ws: null, nextId: 1, retryMs: 500 };
-const teleop = { keys: new Set(), pad: { v: 0, w: 0 }, active: false, takeOver: false, refused: false };
+const control = { ws: null, nextId: 1, retryMs: 500, retryTimer: null, authenticated: false, pendingEstops: new Map() };
 
 function connectControl() {
-  if (!token()) {
-    setControlLink("off", "no token: driving disabled");
+  clearTimeout(control.retryTimer);
+  control.retryTimer = null;
+  let ws;
+  try {
+    ws = new WebSocket(socketUrl("/ws/control"), socketProtocols());
+  } catch (error) {
+    console.error("control socket", error);
+    scheduleControlRetry();
     return;
   }
-  const ws = new WebSocket(socketUrl("/ws/control"), socketProtocols());
   control.ws = ws;
+  control.authenticated = false;
+  stats.authenticated = false;
   ws.onopen = () => {
     control.retryMs = 500;
-    setControlLink("on", "control connected");
+    setControlLink("limited", "control connected; waiting for the greeting");
   };
-  ws.onmessage = (event) => {
-    const reply = JSON.parse(event.data);
-    stats.controlReplies.push(reply);
-    if (stats.controlReplies.length > 50) stats.controlReplies.shift();
-    if (reply.type === "hello") {
-      stats.me = reply.driver;
-      $("me").textContent = reply.driver;
-    } else if (reply.type === "error") {
-      showMessage("control-message", reply.detail, true);
-      if (/teleop is held by/.test(reply.detail)) {
-        teleop.refused = true;
-        $("takeover-box").hidden = false;
-        $("takeover-text").textContent = reply.detail;
-      }
-    } else if (reply.type === "ack" && !["teleop", "release"].includes(reply.detail)) {
-      showMessage("control-message", reply.detail + ": ok · state " + reply.state, false);
-    }
-  };
-  ws.onclose = () => {
-    control.ws = null;
-    setControlLink("off", "control disconnected");
-    control.retryMs = Math.min(5000, control.retryMs * 2);
-    setTimeout(async () => { if (await checkToken()) connectControl(); }, control.retryMs);
-  };
+  ws.onmessage = (event) => onControlMessage(ws, event);
+  ws.onclose = () => onControlClosed(ws);
 }
 
+function onControlMessage(ws, event) {
+  let reply;
+  try {
+    reply = JSON.parse(event.data);
+  } catch (error) {
+    return;
+  }
+  stats.controlReplies.push(reply);
+  if (stats.controlReplies.length > 50) stats.controlReplies.shift();
+  if (reply.id !== undefined && control.pendingEstops.has(reply.id)) {
+    clearTimeout(control.pendingEstops.get(reply.id));
+    control.pendingEstops.delete(reply.id);
+  }
+  if (reply.type === "hello") {
+    stats.me = reply.driver;
+    // An older daemon admitted only clients with the token and said nothing about it.
+    control.authenticated = reply.authenticated !== false;
+    stats.authenticated = control.authenticated;
+    $("me").textContent = reply.driver + (control.authenticated ? "" : " (stop only)");
+    setControlLink(control.authenticated ? "on" : "limited",
+      control.authenticated ? "control connected" : "control connected without the token: stop and e-stop only");
+    updatePadState();
+  } else if (reply.type === "error") {
+    showMessage("control-message", reply.detail, true);
+    if (/teleop is held by/.test(reply.detail)) {
+      teleop.refused = true;
+      $("takeover-box").hidden = false;
+      $("takeover-text").textContent = reply.detail;
+    }
+  } else if (reply.type === "ack" && reply.detail === "estop") {
+    showMessage("control-message", "E-STOP latched · state " + reply.state, true);
+  } else if (reply.type === "ack" && !["teleop", "release"].includes(reply.detail)) {
+    showMessage("control-message", reply.detail + ": ok · state " + reply.state, false);
+  }
+}
+
+function onControlClosed(ws) {
+  if (control.ws !== ws) return; // replaced on purpose
+  control.ws = null;
+  control.authenticated = false;
+  stats.authenticated = false;
+  // Whatever was driving from here stops (the daemon releases this socket's teleop).
+  stopDrivingLocally();
+  for (const [id, timer] of control.pendingEstops) {
+    clearTimeout(timer);
+    control.pendingEstops.delete(id);
+    estopByPost("dashboard (socket closed)");
+  }
+  setControlLink("off", "control disconnected");
+  updatePadState();
+  scheduleControlRetry();
+}
+
+function scheduleControlRetry() {
+  clearTimeout(control.retryTimer);
+  control.retryMs = Math.min(5000, control.retryMs * 2);
+  control.retryTimer = setTimeout(connectControl, control.retryMs);
+}
+
+/** Reconnect at once (the token changed). */
+function reconnectControl() {
+  const old = control.ws;
+  control.ws = null;
+  stopDrivingLocally();
+  if (old) old.close();
+  control.retryMs = 500;
+  connectControl();
+}
+
+/** Send a control message; returns its id, or null if the socket is not open. */
 function sendControl(message) {
   const ws = control.ws;
-  if (!ws || ws.readyState !== WebSocket.OPEN) return false;
-  ws.send(JSON.stringify({ ...message, id: control.nextId++ }));
-  return true;
+  if (!ws || ws.readyState !== WebSocket.OPEN) return null;
+  const id = control.nextId++;
+  ws.send(JSON.stringify({ ...message, id }));
+  return id;
 }
+
+// -- e-stop -----------------------------------------------------------------------------
+
+/** Latch the e-stop: over the control socket when it is open (fastest), else (or when
+ * the socket does not acknowledge within ESTOP_ACK_TIMEOUT_MS) with POST /api/estop,
+ * which needs no token. Idempotent. */
+function estop(source) {
+  const id = sendControl({ type: "estop" });
+  if (id !== null) {
+    stats.estops.push({ via: "socket", wall_ms: performance.timeOrigin + performance.now() });
+    control.pendingEstops.set(id, setTimeout(() => {
+      control.pendingEstops.delete(id);
+      estopByPost(source + " (socket silent)");
+    }, ESTOP_ACK_TIMEOUT_MS));
+  } else {
+    estopByPost(source);
+  }
+  stopDrivingLocally();
+  showMessage("control-message", "E-STOP sent…", true);
+}
+
+async function estopByPost(source) {
+  stats.estops.push({ via: "post", wall_ms: performance.timeOrigin + performance.now() });
+  const headers = { "Content-Type": "application/json", ...authHeaders() };
+  try {
+    const response = await fetch("/api/estop", {
+      method: "POST",
+      headers,
+      body: JSON.stringify({ source: "dashboard " + source }),
+      cache: "no-store",
+      keepalive: true,
+    });
+    showMessage("control-message", response.ok ? "E-STOP latched" : "e-stop: HTTP " + response.status, true);
+  } catch (error) {
+    showMessage("control-message", "E-STOP could not reach the daemon: " + error.message, true);
+  }
+}
+
+let lastPointerEstopMs = -1e9;
+
+function onEstopPointerDown(event) {
+  if (event.pointerType === "mouse" && event.button !== 0) return;
+  // On the press, not the release: a click needs the finger to come up on the button.
+  lastPointerEstopMs = performance.now();
+  estop("E-STOP button");
+}
+
+function onEstopClick() {
+  // Keyboard activation (Enter), or a click whose pointerdown we did not see.
+  if (performance.now() - lastPointerEstopMs < 1000) return;
+  estop("E-STOP button");
+}
+
+// -- teleop: keys, touch pad, gamepad -----------------------------------------------------
+
+const teleop = {
+  keys: new Set(),
+  touch: { v: 0, w: 0, pointerId: null },
+  gamepad: { v: 0, w: 0 },
+  gamepadLatched: false, // after a stop: the stick must come back to neutral first
+  active: false,
+  takeOver: false,
+  refused: false,
+  warned: false,
+};
 
 function keyCommand() {
   const k = teleop.keys;
@@ -407,19 +727,37 @@ function keyCommand() {
   return { v: forward * speed, w: left * turn };
 }
 
-function teleopTick() {
+function teleopCommand() {
   const key = keyCommand();
-  const v = key.v !== 0 ? key.v : teleop.pad.v;
-  const w = key.w !== 0 ? key.w : teleop.pad.w;
+  if (key.v !== 0 || key.w !== 0) return key;
+  if (teleop.touch.pointerId !== null) return teleop.touch;
+  return teleop.gamepad;
+}
+
+/** Send the current hand command (every 1/TELEOP_HZ s, and at once on any change): the
+ * keyboard, the touch pad and the gamepad share this path to the control socket. */
+function teleopTick() {
+  const { v, w } = teleopCommand();
   const moving = v !== 0 || w !== 0;
   if (moving) {
+    if (!control.authenticated) {
+      if (!teleop.warned) {
+        teleop.warned = true;
+        showMessage("control-message", control.ws ? "Driving needs the token (Token button above)."
+          : "Not connected to the robot.", true);
+      }
+      return;
+    }
     teleop.active = true;
-    sendControl({ type: "teleop", v_m_s: round3(v), omega_rad_s: round3(w), take_over: teleop.takeOver });
+    if (sendControl({ type: "teleop", v_m_s: round3(v), omega_rad_s: round3(w), take_over: teleop.takeOver }) !== null) {
+      stats.teleopSent += 1;
+    }
   } else if (teleop.active) {
     // Let go: an explicit zero first (stops at once), then hand teleop back.
     teleop.active = false;
     teleop.takeOver = false;
     sendControl({ type: "teleop", v_m_s: 0, omega_rad_s: 0 });
+    stats.zeroSentWallMs = performance.timeOrigin + performance.now();
     sendControl({ type: "release" });
   }
 }
@@ -428,48 +766,141 @@ function round3(x) {
   return Math.round(x * 1000) / 1000;
 }
 
+/** Forget every held key, the pad's finger and the gamepad's stick, and send the zero. */
+function stopDrivingLocally() {
+  for (const name of teleop.keys) $("key-" + name).classList.remove("active");
+  teleop.keys.clear();
+  releasePad(false);
+  teleop.gamepad = { v: 0, w: 0 };
+  teleop.gamepadLatched = true;
+  teleopTick();
+}
+
 const KEY_NAMES = {
   ArrowUp: "up", KeyW: "up",
   ArrowDown: "down", KeyS: "down",
   ArrowLeft: "left", KeyA: "left",
   ArrowRight: "right", KeyD: "right",
 };
+const NON_TEXT_INPUTS = new Set(["range", "button", "submit", "reset", "checkbox", "radio", "color", "file", "image"]);
 
-function typingInForm(event) {
-  const t = event.target;
-  return t && (t.tagName === "INPUT" || t.tagName === "TEXTAREA" || t.tagName === "SELECT" || t.isContentEditable);
+/** A field where the space bar types: there it does not e-stop. */
+function isTextField(el) {
+  if (!el || !el.tagName) return false;
+  if (el.isContentEditable) return true;
+  if (el.tagName === "TEXTAREA") return true;
+  if (el.tagName === "INPUT") return !NON_TEXT_INPUTS.has((el.type || "text").toLowerCase());
+  return false;
 }
 
+function isSpace(event) {
+  return event.code === "Space" || event.key === " ";
+}
+
+/** Capture phase on window: runs before any focused control sees the key. */
 function onKeyDown(event) {
-  if (typingInForm(event) || document.querySelector("dialog[open]")) return;
-  if (event.code === "Space") {
+  const target = event.target;
+  const text = isTextField(target);
+  if (isSpace(event)) {
+    if (text) return;
+    // A focused button would click, a select would open, the page would scroll.
     event.preventDefault();
-    if (!event.repeat) estop();
+    if (!event.repeat) estop("space bar");
+    return;
+  }
+  if (event.key === "Escape") {
+    if (closeOpenDialogs()) event.preventDefault();
     return;
   }
   const name = KEY_NAMES[event.code];
-  if (!name) return;
+  if (!name || text || event.ctrlKey || event.metaKey || event.altKey) return;
+  // The safe-zone editor's sliders keep their arrow keys; the speed sliders do not
+  // (arrows after touching them drive the robot, not the slider).
+  if (event.code.startsWith("Arrow") && target && target.closest && target.closest("#zone-sliders")) return;
   event.preventDefault();
-  if (!teleop.keys.has(name)) {
-    teleop.keys.add(name);
-    $("key-" + name).classList.add("active");
-    teleopTick(); // do not wait for the next tick to start moving
-  }
+  // A key still held after an e-stop or a focus loss repeats: it does not start again.
+  if (event.repeat || teleop.keys.has(name)) return;
+  teleop.keys.add(name);
+  teleop.warned = false;
+  $("key-" + name).classList.add("active");
+  teleopTick(); // do not wait for the next tick to start moving
 }
 
 function onKeyUp(event) {
+  if (isSpace(event)) {
+    if (!isTextField(event.target)) event.preventDefault(); // no click on a focused button
+    return;
+  }
   const name = KEY_NAMES[event.code];
-  if (!name) return;
+  if (!name || !teleop.keys.has(name)) return;
   teleop.keys.delete(name);
   $("key-" + name).classList.remove("active");
   teleopTick();
 }
 
-function releaseAllKeys() {
-  // A key held while the window loses focus never sends its keyup.
-  for (const name of teleop.keys) $("key-" + name).classList.remove("active");
-  teleop.keys.clear();
+// -- touch pad ----------------------------------------------------------------------------
+
+function updatePadState() {
+  $("pad").classList.toggle("disabled", !control.authenticated);
+}
+
+function padVector(event) {
+  const rect = $("pad").getBoundingClientRect();
+  const r = rect.width / 2;
+  let dx = (event.clientX - (rect.left + r)) / r;
+  let dy = (event.clientY - (rect.top + rect.height / 2)) / r;
+  const magnitude = Math.hypot(dx, dy);
+  if (magnitude > 1) {
+    dx /= magnitude;
+    dy /= magnitude;
+  }
+  return { dx, dy, r };
+}
+
+function padAxis(x) {
+  const magnitude = Math.abs(x);
+  if (magnitude < PAD_DEADZONE) return 0;
+  return Math.sign(x) * Math.min(1, (magnitude - PAD_DEADZONE) / (1 - PAD_DEADZONE));
+}
+
+function onPadDown(event) {
+  if (event.pointerType === "mouse" && event.button !== 0) return;
+  if (teleop.touch.pointerId !== null) return; // one finger drives
+  event.preventDefault();
+  teleop.touch.pointerId = event.pointerId;
+  try {
+    $("pad").setPointerCapture(event.pointerId);
+  } catch (error) {
+    // the pointer is gone already: its pointerup/cancel follows
+  }
+  $("pad").classList.add("active");
+  teleop.warned = false;
+  onPadMove(event);
   teleopTick();
+}
+
+function onPadMove(event) {
+  if (event.pointerId !== teleop.touch.pointerId) return;
+  const { dx, dy, r } = padVector(event);
+  $("pad-knob").style.transform = `translate(${(dx * r * 0.75).toFixed(1)}px, ${(dy * r * 0.75).toFixed(1)}px)`;
+  teleop.touch.v = -padAxis(dy) * Number($("speed").value);
+  teleop.touch.w = -padAxis(dx) * Number($("turn").value);
+}
+
+function onPadUp(event) {
+  if (event.pointerId !== teleop.touch.pointerId) return;
+  releasePad(true);
+}
+
+/** The finger is off the pad: zero at once (``send``), then the release. */
+function releasePad(send) {
+  const id = teleop.touch.pointerId;
+  teleop.touch = { v: 0, w: 0, pointerId: null };
+  const pad = $("pad");
+  if (id !== null && pad.hasPointerCapture(id)) pad.releasePointerCapture(id);
+  pad.classList.remove("active");
+  $("pad-knob").style.transform = "";
+  if (send) teleopTick();
 }
 
 // -- gamepad ----------------------------------------------------------------------------
@@ -481,32 +912,38 @@ function deadzone(x) {
 }
 
 let padEstopWasPressed = false;
+let gamepadPolling = false;
+
+/** Poll the gamepad every animation frame, only while one is connected: an idle
+ * requestAnimationFrame loop would keep the page drawing 60 frames a second. */
+function startGamepadPolling() {
+  if (gamepadPolling) return;
+  gamepadPolling = true;
+  requestAnimationFrame(pollGamepad);
+}
 
 function pollGamepad() {
   const pads = navigator.getGamepads ? Array.from(navigator.getGamepads()).filter(Boolean) : [];
   const pad = pads[0];
-  if (pad) {
-    const v = -deadzone(pad.axes[1] || 0) * Number($("speed").value);
-    const w = -deadzone(pad.axes[0] || 0) * Number($("turn").value);
-    teleop.pad = { v, w };
-    $("gamepad-status").textContent = `gamepad: ${pad.id.slice(0, 40)} · B = e-stop`;
-    const estopPressed = Boolean(pad.buttons[1] && pad.buttons[1].pressed);
-    if (estopPressed && !padEstopWasPressed) estop();
-    padEstopWasPressed = estopPressed;
-  } else {
-    teleop.pad = { v: 0, w: 0 };
+  if (!pad) {
+    teleop.gamepad = { v: 0, w: 0 };
+    $("gamepad-status").textContent = "no gamepad";
+    gamepadPolling = false;
+    teleopTick(); // unplugged while driving: the zero goes out now
+    return;
   }
+  const v = -deadzone(pad.axes[1] || 0) * Number($("speed").value);
+  const w = -deadzone(pad.axes[0] || 0) * Number($("turn").value);
+  if (teleop.gamepadLatched && v === 0 && w === 0) teleop.gamepadLatched = false;
+  teleop.gamepad = teleop.gamepadLatched ? { v: 0, w: 0 } : { v, w };
+  $("gamepad-status").textContent = `gamepad: ${pad.id.slice(0, 40)} · B = e-stop`;
+  const estopPressed = Boolean(pad.buttons[1] && pad.buttons[1].pressed);
+  if (estopPressed && !padEstopWasPressed) estop("gamepad");
+  padEstopWasPressed = estopPressed;
   requestAnimationFrame(pollGamepad);
 }
 
 // -- commands ---------------------------------------------------------------------------
-
-async function estop() {
-  // Both paths: the socket is fastest, the POST works without it. The latch is idempotent.
-  sendControl({ type: "estop" });
-  const reply = await api("POST", "/api/estop", { source: "dashboard" });
-  showMessage("control-message", reply.ok ? "E-STOP latched" : "e-stop: " + detailOf(reply), !reply.ok);
-}
 
 async function resetEstop() {
   const reply = await api("POST", "/api/estop/reset");
@@ -586,12 +1023,17 @@ async function calibAccept() {
   $("calib-accept").disabled = false;
   if (!reply.ok) {
     $("calib-info").textContent = "";
-    const why = reply.status === 409 ? "Refused now" : reply.status === 422 ? "Calibration failed" : "Error";
-    calibError(`${why} (${reply.status}): ${detailOf(reply)}`);
+    // The daemon says "calibration failed: <why>" itself (HTTP 409); other 409s are
+    // refusals in the current state (e-stop latched, no recent frame).
+    const detail = detailOf(reply);
+    const why = /^calibration failed/i.test(detail) ? ""
+      : reply.status === 409 ? "Refused now: " : reply.status === 422 ? "Invalid request: " : "Error: ";
+    const text = why + detail;
+    calibError(`${text.charAt(0).toUpperCase()}${text.slice(1)} (HTTP ${reply.status})`);
     return;
   }
   const r = reply.data;
-  $("calib-info").textContent = r.saved_to ? "Saved to " + r.saved_to + "; the map starts afresh." : "Applied.";
+  $("calib-info").textContent = r.saved_to ? "Saved to " + r.saved_to + "; the map starts afresh." : "Preview only: not applied (save to use it).";
   const body = $("calib-result").tBodies[0];
   body.replaceChildren();
   for (const [name, value] of [
@@ -627,7 +1069,7 @@ function drawCorners(corners, size) {
 // -- safe-zone editor -------------------------------------------------------------------
 
 const ZONE_KEYS = ["bottom_left_x_frac", "bottom_right_x_frac", "top_left_x_frac", "top_right_x_frac", "top_y_frac", "bottom_y_frac"];
-const zone = { saved: null, draft: null, dragging: null };
+const zone = { saved: null, draft: null, dragging: null, pointerId: null, box: { w: 1000, h: 750 } };
 
 async function loadZone() {
   const reply = await api("GET", "/api/config", undefined, { quiet401: true });
@@ -639,6 +1081,8 @@ async function loadZone() {
       zone.draft = { ...sz };
       renderZone();
     }
+  } else {
+    showMessage("zone-message", "cannot read the safe zone: " + detailOf(reply), true);
   }
 }
 
@@ -654,6 +1098,7 @@ function buildZoneSliders() {
     input.step = "0.01";
     input.id = "zone-" + key;
     input.addEventListener("input", () => {
+      if (!zone.draft) return;
       zone.draft[key] = Number(input.value);
       renderZone();
     });
@@ -664,13 +1109,35 @@ function buildZoneSliders() {
   }
 }
 
+/** Put the SVG exactly over the image's content box (the image is letterboxed with
+ * object-fit: contain), in CSS pixels, so fractions of the SVG are fractions of the
+ * camera image and the handles stay round. */
+function layoutZoneSvg() {
+  const svg = $("zone-svg");
+  const wrap = $("video-wrap");
+  const W = wrap.clientWidth;
+  const H = wrap.clientHeight;
+  if (!W || !H) return;
+  const [iw, ih] = video.size && video.size[0] ? video.size : [4, 3];
+  const scale = Math.min(W / iw, H / ih);
+  const w = iw * scale;
+  const h = ih * scale;
+  svg.style.left = ((W - w) / 2).toFixed(1) + "px";
+  svg.style.top = ((H - h) / 2).toFixed(1) + "px";
+  svg.style.width = w.toFixed(1) + "px";
+  svg.style.height = h.toFixed(1) + "px";
+  svg.setAttribute("viewBox", `0 0 ${w.toFixed(1)} ${h.toFixed(1)}`);
+  zone.box = { w, h };
+  renderZone();
+}
+
 function zoneCorners(z) {
-  // SVG viewBox is 1000 x 1000 over the image.
+  const { w, h } = zone.box;
   return {
-    bl: [z.bottom_left_x_frac * 1000, z.bottom_y_frac * 1000],
-    br: [z.bottom_right_x_frac * 1000, z.bottom_y_frac * 1000],
-    tr: [z.top_right_x_frac * 1000, z.top_y_frac * 1000],
-    tl: [z.top_left_x_frac * 1000, z.top_y_frac * 1000],
+    bl: [z.bottom_left_x_frac * w, z.bottom_y_frac * h],
+    br: [z.bottom_right_x_frac * w, z.bottom_y_frac * h],
+    tr: [z.top_right_x_frac * w, z.top_y_frac * h],
+    tl: [z.top_left_x_frac * w, z.top_y_frac * h],
   };
 }
 
@@ -678,11 +1145,11 @@ function renderZone() {
   const z = zone.draft;
   if (!z) return;
   const c = zoneCorners(z);
-  $("zone-poly").setAttribute("points", ["bl", "br", "tr", "tl"].map((k) => c[k].join(",")).join(" "));
+  $("zone-poly").setAttribute("points", ["bl", "br", "tr", "tl"].map((k) => c[k].map((x) => x.toFixed(1)).join(",")).join(" "));
   for (const handle of document.querySelectorAll("#zone-svg .handle")) {
     const [x, y] = c[handle.dataset.corner];
-    handle.setAttribute("cx", x);
-    handle.setAttribute("cy", y);
+    handle.setAttribute("cx", x.toFixed(1));
+    handle.setAttribute("cy", y.toFixed(1));
   }
   for (const key of ZONE_KEYS) {
     $("zone-" + key).value = z[key];
@@ -698,14 +1165,22 @@ function svgFraction(event) {
 
 function onZonePointerDown(event) {
   const corner = event.target.dataset && event.target.dataset.corner;
-  if (!corner) return;
+  if (!corner || !zone.draft || zone.dragging) return;
+  if (event.pointerType === "mouse" && event.button !== 0) return;
   zone.dragging = corner;
-  event.target.setPointerCapture(event.pointerId);
+  zone.pointerId = event.pointerId;
+  try {
+    event.target.setPointerCapture(event.pointerId);
+  } catch (error) {
+    // pointer already gone
+  }
+  event.target.classList.add("dragging");
   event.preventDefault();
 }
 
 function onZonePointerMove(event) {
-  if (!zone.dragging) return;
+  if (!zone.dragging || event.pointerId !== zone.pointerId) return;
+  event.preventDefault();
   const [fx, fy] = svgFraction(event);
   const z = zone.draft;
   const r2 = (x) => Math.round(x * 100) / 100;
@@ -717,8 +1192,11 @@ function onZonePointerMove(event) {
   renderZone();
 }
 
-function onZonePointerUp() {
+function onZonePointerUp(event) {
+  if (event.pointerId !== zone.pointerId) return;
   zone.dragging = null;
+  zone.pointerId = null;
+  for (const handle of document.querySelectorAll("#zone-svg .handle.dragging")) handle.classList.remove("dragging");
 }
 
 async function applyZone() {
@@ -734,16 +1212,41 @@ async function applyZone() {
 function toggleZoneEditor() {
   const editing = $("zone-editor").hidden;
   $("zone-editor").hidden = !editing;
-  $("zone-svg").hidden = !editing;
+  // An <svg> has no .hidden property (that is HTMLElement's): set the attribute.
+  $("zone-svg").toggleAttribute("hidden", !editing);
+  $("video-wrap").classList.toggle("editing", editing);
   $("zone-toggle").setAttribute("aria-pressed", String(editing));
   $("zone-toggle").textContent = editing ? "Close safe-zone editor" : "Edit safe zone";
-  if (editing) loadZone();
+  if (editing) {
+    layoutZoneSvg();
+    loadZone();
+    // The corners are dragged on the video: bring it into view (below the header).
+    $("video-wrap").scrollIntoView({ block: "nearest" });
+  }
 }
 
 // -- wiring -----------------------------------------------------------------------------
 
+/** The header's height, for dialogs placed below it. */
+function trackHeaderHeight() {
+  const header = $("topbar");
+  const update = () => document.documentElement.style.setProperty("--header-h", header.offsetHeight + "px");
+  update();
+  if (window.ResizeObserver) new ResizeObserver(update).observe(header);
+}
+
 function wire() {
-  $("estop").addEventListener("click", estop);
+  // The E-STOP first of all.
+  $("estop").addEventListener("pointerdown", onEstopPointerDown);
+  $("estop").addEventListener("click", onEstopClick);
+  window.addEventListener("keydown", onKeyDown, true);
+  window.addEventListener("keyup", onKeyUp, true);
+  window.addEventListener("blur", stopDrivingLocally);
+  window.addEventListener("pagehide", stopDrivingLocally);
+  document.addEventListener("visibilitychange", () => { if (document.hidden) stopDrivingLocally(); });
+  setInterval(teleopTick, 1000 / TELEOP_HZ);
+  trackHeaderHeight();
+
   $("estop-reset").addEventListener("click", resetEstop);
   $("fault-reset").addEventListener("click", resetFault);
   $("start").addEventListener("click", startExploring);
@@ -752,36 +1255,51 @@ function wire() {
     teleop.takeOver = true;
     teleop.refused = false;
     $("takeover-box").hidden = true;
-    showMessage("control-message", "taking over: hold a drive key", false);
+    showMessage("control-message", "taking over: hold a drive key or the pad", false);
   });
   for (const [input, out, digits] of [["speed", "speed-out", 2], ["turn", "turn-out", 2]]) {
     $(input).addEventListener("input", () => { $(out).textContent = Number($(input).value).toFixed(digits); });
+    // Done with the slider: give the keys back to driving.
+    $(input).addEventListener("change", () => $(input).blur());
   }
-  window.addEventListener("keydown", onKeyDown);
-  window.addEventListener("keyup", onKeyUp);
-  window.addEventListener("blur", releaseAllKeys);
-  document.addEventListener("visibilitychange", () => { if (document.hidden) releaseAllKeys(); });
-  setInterval(teleopTick, 1000 / TELEOP_HZ);
-  requestAnimationFrame(pollGamepad);
+  $("map-size").addEventListener("change", () => $("map-size").blur());
 
+  const pad = $("pad");
+  pad.addEventListener("pointerdown", onPadDown);
+  pad.addEventListener("pointermove", onPadMove);
+  pad.addEventListener("pointerup", onPadUp);
+  pad.addEventListener("pointercancel", onPadUp);
+  pad.addEventListener("lostpointercapture", onPadUp);
+  pad.addEventListener("contextmenu", (event) => event.preventDefault());
+  updatePadState();
+  window.addEventListener("gamepadconnected", startGamepadPolling);
+  if (navigator.getGamepads && Array.from(navigator.getGamepads()).some(Boolean)) startGamepadPolling();
+
+  $("scrim").addEventListener("click", closeOpenDialogs);
+  for (const dialog of document.querySelectorAll("dialog")) dialog.addEventListener("close", updateScrim);
   $("token-button").addEventListener("click", () => openTokenDialog(""));
-  $("token-cancel").addEventListener("click", () => $("token-dialog").close());
-  $("token-forget").addEventListener("click", () => {
+  $("token-cancel").addEventListener("click", () => closeDialog("token-dialog"));
+  $("token-forget").addEventListener("click", async () => {
+    await closeSession();
     localStorage.removeItem(TOKEN_KEY);
     $("token-input").value = "";
-    showMessage("token-message", "forgotten", false);
-    if (control.ws) control.ws.close();
+    showMessage("token-message", "forgotten: this browser can still stop the robot", false);
+    reconnectControl();
   });
   $("token-form").addEventListener("submit", async (event) => {
     event.preventDefault();
     const value = $("token-input").value.trim();
     if (!value) return;
+    const previous = token();
     localStorage.setItem(TOKEN_KEY, value);
-    if (await checkToken()) {
-      $("token-dialog").close();
-      if (control.ws) control.ws.close(); // reconnects with the new token
-      else connectControl();
+    if (await checkToken({ prompt: false })) {
+      closeDialog("token-dialog");
+      showMessage("control-message", "token accepted", false);
+      reconnectControl();
+      await openSession();
     } else {
+      if (previous) localStorage.setItem(TOKEN_KEY, previous);
+      else localStorage.removeItem(TOKEN_KEY);
       showMessage("token-message", "The daemon refused this token.", true);
     }
   });
@@ -789,9 +1307,10 @@ function wire() {
   $("calib-open").addEventListener("click", () => {
     calibError("");
     $("calib-info").textContent = "";
-    $("calib-dialog").showModal();
+    // Focus on a button, not a field: the space bar still e-stops.
+    openDialog("calib-dialog", $("calib-detect"));
   });
-  $("calib-cancel").addEventListener("click", () => $("calib-dialog").close());
+  $("calib-cancel").addEventListener("click", () => closeDialog("calib-dialog"));
   $("calib-detect").addEventListener("click", calibDetect);
   $("calib-accept").addEventListener("click", calibAccept);
 
@@ -806,6 +1325,8 @@ function wire() {
   svg.addEventListener("pointermove", onZonePointerMove);
   svg.addEventListener("pointerup", onZonePointerUp);
   svg.addEventListener("pointercancel", onZonePointerUp);
+  svg.addEventListener("lostpointercapture", onZonePointerUp);
+  if (window.ResizeObserver) new ResizeObserver(layoutZoneSvg).observe($("video-wrap"));
 
   $("viser-load").addEventListener("click", () => {
     const holder = $("viser-holder");
@@ -818,6 +1339,19 @@ function wire() {
     frame.src = "/viser/";
     frame.title = "viser 3D view";
     frame.id = "viser-frame";
+    // Same origin: the space bar e-stops with the focus inside the 3D view too.
+    frame.addEventListener("load", () => {
+      try {
+        frame.contentWindow.addEventListener("keydown", (event) => {
+          if (isSpace(event) && !isTextField(event.target)) {
+            event.preventDefault();
+            if (!event.repeat) estop("space bar");
+          }
+        }, true);
+      } catch (error) {
+        // not same-origin after all: the page's own handler still covers the rest
+      }
+    });
     holder.appendChild(frame);
     $("viser-load").textContent = "Hide 3D view";
   });
@@ -826,13 +1360,19 @@ function wire() {
 async function main() {
   takeTokenFromUrl();
   wire();
+  // The control socket first: it carries the e-stop (with or without the token).
+  connectControl();
   const first = await api("GET", "/api/status", undefined, { quiet401: true });
   if (first.ok && first.data) renderStatus(first.data);
   connectTelemetry();
   connectVideo();
   refreshMap();
-  if (await checkToken()) connectControl();
-  else if (!token()) openTokenDialog("");
+  if (token()) {
+    if (await checkToken()) await openSession();
+  } else {
+    // Not focused: the space bar must still e-stop on a page just opened.
+    openTokenDialog("", { focus: false });
+  }
 }
 
 main();

@@ -153,10 +153,14 @@ def robot(live_server: LiveServer) -> LiveServer:
     def clean() -> None:
         live_server.runtime.reset_estop()
         live_server.runtime.release_teleop()
+        # A fault latched by an earlier test (a starved simulated Uno under load) must
+        # not fail every later test at its setup.
+        live_server.runtime.reset_fault()
 
     live_server.call(clean)
     deadline = time.monotonic() + 15
     while live_server.status()["serial"]["state"] != "connected" or live_server.status()["fault"]:
+        live_server.call(live_server.runtime.reset_fault)
         if time.monotonic() > deadline:
             pytest.fail(f"daemon not healthy: {live_server.status()['fault']}")
         time.sleep(0.1)
