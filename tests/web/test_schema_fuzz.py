@@ -46,7 +46,7 @@ schema = schemathesis.openapi.from_asgi("/openapi.json", _app)
 @schema.parametrize()
 @settings(max_examples=15, deadline=None, suppress_health_check=list(HealthCheck))
 def test_no_server_errors_with_the_token(case: schemathesis.Case) -> None:
-    case.call_and_validate(headers=AUTH, checks=[not_a_server_error])
+    case.call_and_validate(headers=dict(AUTH), checks=[not_a_server_error])
 
 
 @schema.parametrize()
