@@ -2,11 +2,16 @@
 
 from __future__ import annotations
 
-from collections.abc import Iterator, Mapping
+import asyncio
+import threading
+import time
+from collections.abc import Callable, Iterator, Mapping
+from dataclasses import dataclass
 from pathlib import Path
 from types import MappingProxyType
 
 import pytest
+import uvicorn
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
@@ -44,3 +49,34 @@ def client(app: FastAPI) -> Iterator[TestClient]:
     # so slots published through ``client.portal`` wake the app's waiters.
     with TestClient(app) as test_client:
         yield test_client
+
+
+@dataclass(frozen=True)
+class ServedApp:
+    """An app served by uvicorn on a loopback port in its own thread and event loop."""
+
+    port: int
+    loop: asyncio.AbstractEventLoop
+    stop: Callable[[], None]
+    """Ends the server and its thread (blocks until they are gone)."""
+
+
+def serve_in_thread(app: FastAPI, **config: object) -> ServedApp:
+    """Serve ``app`` on a free loopback port; ``config`` goes to `uvicorn.Config`."""
+    settings: dict[str, object] = {"log_level": "warning", "lifespan": "off", **config}
+    server = uvicorn.Server(uvicorn.Config(app, host="127.0.0.1", port=0, **settings))  # type: ignore[arg-type]
+    loop = asyncio.new_event_loop()
+    thread = threading.Thread(target=loop.run_until_complete, args=(server.serve(),), daemon=True)
+    thread.start()
+    deadline = time.monotonic() + 10
+    while not server.started:
+        assert time.monotonic() < deadline, "uvicorn did not start"
+        time.sleep(0.01)
+
+    def stop() -> None:
+        server.should_exit = True
+        thread.join(timeout=10)
+        assert not thread.is_alive(), "uvicorn did not stop"
+        loop.close()
+
+    return ServedApp(server.servers[0].sockets[0].getsockname()[1], loop, stop)

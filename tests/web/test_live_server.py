@@ -12,13 +12,12 @@ from collections.abc import Iterator
 from dataclasses import dataclass, field
 
 import pytest
-import uvicorn
 from websockets.asyncio.client import ClientConnection, connect
 
 from app.messages import FloorMsg
 from app.web import create_app
 
-from .conftest import TOKEN
+from .conftest import TOKEN, serve_in_thread
 from .fakes import FakeService, floor_msg
 
 PUBLISH_HZ = 30.0
@@ -41,22 +40,11 @@ class LiveServer:
 def live_server() -> Iterator[LiveServer]:
     service = FakeService()
     app = create_app(service, token=TOKEN, static_dir=None)
-    config = uvicorn.Config(app, host="127.0.0.1", port=0, log_level="warning", lifespan="off")
-    server = uvicorn.Server(config)
-    loop = asyncio.new_event_loop()
-    thread = threading.Thread(target=loop.run_until_complete, args=(server.serve(),), daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 10
-    while not server.started:
-        assert time.monotonic() < deadline, "uvicorn did not start"
-        time.sleep(0.01)
-    port = server.servers[0].sockets[0].getsockname()[1]
+    served = serve_in_thread(app)
     try:
-        yield LiveServer(service, port, loop)
+        yield LiveServer(service, served.port, served.loop)
     finally:
-        server.should_exit = True
-        thread.join(timeout=10)
-        loop.close()
+        served.stop()
 
 
 @dataclass

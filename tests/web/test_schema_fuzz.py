@@ -6,21 +6,18 @@ from __future__ import annotations
 import subprocess
 import sys
 import tempfile
-import threading
-import time
 from pathlib import Path
 
 import pytest
 import schemathesis
-import uvicorn
 from hypothesis import HealthCheck, settings
 from schemathesis.checks import not_a_server_error
 
 from app.config import FloornavConfig
 from app.web import create_app
 
-from ..conftest import free_port, room_scene
-from .conftest import AUTH, TOKEN
+from ..conftest import room_scene
+from .conftest import AUTH, TOKEN, serve_in_thread
 from .fakes import FakeService, floor_msg
 
 # The schema is loaded at import (schemathesis parametrizes at collection), so the app
@@ -60,22 +57,13 @@ def test_the_whole_contract_holds(tmp_path: Path) -> None:
     """schemathesis's CLI with every check (status codes, bodies against their schemas,
     schema-valid requests accepted and invalid ones refused, ``Allow`` on 405s, auth
     honoured) over every operation, against the app served by uvicorn."""
-    port = free_port()
-    server = uvicorn.Server(
-        uvicorn.Config(_app, host="127.0.0.1", port=port, log_level="error", lifespan="off")
-    )
-    thread = threading.Thread(target=server.run, daemon=True)
-    thread.start()
+    served = serve_in_thread(_app, log_level="error")
     try:
-        deadline = time.monotonic() + 30.0
-        while not server.started and time.monotonic() < deadline:
-            time.sleep(0.05)
-        assert server.started, "uvicorn did not start"
         result = subprocess.run(
             [
                 str(Path(sys.executable).with_name("st")),
                 "run",
-                f"http://127.0.0.1:{port}/openapi.json",
+                f"http://127.0.0.1:{served.port}/openapi.json",
                 "--header",
                 f"Authorization: {AUTH['Authorization']}",
                 "--checks",
@@ -97,6 +85,5 @@ def test_the_whole_contract_holds(tmp_path: Path) -> None:
             check=False,
         )
     finally:
-        server.should_exit = True
-        thread.join(timeout=10.0)
+        served.stop()
     assert result.returncode == 0, result.stdout[-6000:] + result.stderr[-2000:]

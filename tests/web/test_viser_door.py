@@ -12,7 +12,6 @@ import asyncio
 import contextlib
 import inspect
 import logging
-import threading
 import time
 from collections.abc import AsyncIterator, Callable, Iterator
 from dataclasses import dataclass
@@ -21,7 +20,6 @@ from typing import Any
 import msgspec
 import numpy as np
 import pytest
-import uvicorn
 import viser
 from fastapi.testclient import TestClient
 from starlette.testclient import WebSocketDenialResponse
@@ -37,7 +35,7 @@ from app.web.viser_proxy import BLOCKED_MESSAGE_TYPES, refusal, viser_router
 from app.web.viser_view import ViserView
 
 from ..conftest import free_port
-from .conftest import TOKEN
+from .conftest import TOKEN, serve_in_thread
 from .fakes import FakeService
 
 VISER_PROTOCOL = f"viser-v{viser.__version__}"
@@ -144,23 +142,8 @@ def start_api(
     """The app with the proxy, served by uvicorn in its own thread; returns the stopper."""
     app = create_app(service, token=TOKEN, static_dir=None, viser_router=viser_router(viser_port))
     # log_config=None: leave the test's logging alone (caplog sees uvicorn's records).
-    config = uvicorn.Config(app, host="127.0.0.1", port=0, log_config=None, lifespan="off")
-    server = uvicorn.Server(config)
-    loop = asyncio.new_event_loop()
-    thread = threading.Thread(target=loop.run_until_complete, args=(server.serve(),), daemon=True)
-    thread.start()
-    deadline = time.monotonic() + 10
-    while not server.started:
-        assert time.monotonic() < deadline, "uvicorn did not start"
-        time.sleep(0.01)
-
-    def stop() -> None:
-        server.should_exit = True
-        thread.join(timeout=10)
-        assert not thread.is_alive(), "uvicorn did not stop"
-        loop.close()
-
-    return Api(server.servers[0].sockets[0].getsockname()[1]), stop
+    served = serve_in_thread(app, log_config=None, log_level=None)
+    return Api(served.port), served.stop
 
 
 @contextlib.contextmanager
