@@ -34,6 +34,7 @@ KERNEL_MODULES = (
     "app.perception.free_space",
     "app.perception.planar",
     "app.mapping.occupancy",
+    "app.mapping.floor_memory",
     "app.mapping.frontiers",
     "app.sim.render",
 )

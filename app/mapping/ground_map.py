@@ -7,7 +7,7 @@ from __future__ import annotations
 import math
 from collections import deque
 from collections.abc import Sequence
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 
 import cv2
 import numpy as np
@@ -15,6 +15,7 @@ from numpy.typing import NDArray
 
 from app.config import CameraConfig, MappingConfig
 from app.mapping.calibration import FloorCalibration
+from app.mapping.floor_memory import FloorMemory, patch_world_index
 from app.mapping.frames import FLOOR, GroundGrid, Pose2D
 from app.mapping.frontiers import FrontierParams, FrontierSearch, find_frontiers, footprint_mask
 from app.mapping.ipm import BirdseyeMap, birdseye_floor_patch, build_birdseye_map
@@ -28,6 +29,8 @@ from app.mapping.occupancy import (
 )
 from app.perception.planar import PlanarParams, confirm_floor, view_homography
 
+_NO_SECOND_MAP = np.empty((0, 0), dtype=np.uint16)
+"""cv2.remap's second map, unused with the fixed-point `BirdseyeMap.nearest_map`."""
 PARALLAX_PERIOD_S = 0.2
 """The parallax test runs at most this often (~8 ms a frame)..."""
 PARALLAX_CARRY_S = 0.5
@@ -82,6 +85,8 @@ class MapUpdate:
 
     patch: NDArray[np.uint8]
     summary: UpdateSummary
+    corrected_cells: int = 0
+    """Patch cells the colour method called not-floor that the memory knows are floor."""
 
 
 def blind_zone_cells(birdseye: BirdseyeMap, half_width_m: float) -> NDArray[np.bool_]:
@@ -119,6 +124,13 @@ class GroundMapper:
         )
         self.frontier_params = frontier_params(mapping)
         self.blind_zone = blind_zone_cells(self.birdseye, mapping.robot_radius_m)
+        self.memory = FloorMemory(self.grid.world_grid)
+        x, _ = self.birdseye.grid.cell_centers()
+        # Colours come only from cells the camera sees (the blind zone is floor by
+        # assumption, but has no colour).
+        self._near_cells = np.asarray(
+            (x <= self.memory.params.near_m) & self.birdseye.visible, dtype=np.bool_
+        )
         # Parallax needs the floor homography to hold on the frames themselves.
         self.parallax = (
             PlanarParams() if mapping.parallax_floor and calibration.intrinsics is None else None
@@ -144,19 +156,41 @@ class GroundMapper:
         frame's ``image`` (BGR or grey), the floor is first extended where motion parallax
         against an earlier frame confirms it (`app.perception.planar`); ``now_s`` paces
         that test."""
+        flat: NDArray[np.bool_] | None = None
         if image is not None and self.parallax is not None:
-            floor_mask = self._confirm_by_parallax(floor_mask, image, T_world_robot, now_s)
+            extended = self._confirm_by_parallax(floor_mask, image, T_world_robot, now_s)
+            flat = extended & ~floor_mask
+            floor_mask = extended
         patch = birdseye_floor_patch(floor_mask, self.birdseye)
         # The thesis's safe-zone assumption: the strip just ahead of the robot, below the
         # camera's view, is free floor.
         patch[self.blind_zone] = FLOOR
+        memory = self.memory
+        index = patch_world_index(self.birdseye.grid, self.grid.world_grid, T_world_robot)
+        if image is not None and image.ndim == 3:
+            patch_bgr = np.asarray(
+                cv2.remap(
+                    image,
+                    self.birdseye.nearest_map,
+                    _NO_SECOND_MAP,
+                    cv2.INTER_NEAREST,
+                    borderMode=cv2.BORDER_CONSTANT,
+                    borderValue=0,
+                ),
+                dtype=np.uint8,
+            )
+            memory.observe_colours(patch_bgr, patch, index, self._near_cells)
+        if flat is not None and flat.any():
+            memory.confirm_cells(index[birdseye_floor_patch(flat, self.birdseye) == FLOOR])
+        memory.drive_over(T_world_robot, self.mapping.robot_radius_m)
+        corrected = memory.correct_patch(patch, index)
         summary = self.grid.update(patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot)
-        return MapUpdate(patch, summary)
+        return MapUpdate(patch, summary, corrected)
 
     def snapshot(self) -> SavedMap:
         """A read-only copy of the map for saving (`app.mapping.map_files.save_map`); call
         it in the thread that runs `update`."""
-        return self.grid.snapshot()
+        return replace(self.grid.snapshot(), floor_memory=self.memory.state())
 
     def restore(self, snapshot: SavedMap) -> None:
         """Continue from a saved map (`app.mapping.map_files.load_map`): the grid takes its
@@ -168,7 +202,11 @@ class GroundMapper:
         ValueError
             The map is of another world grid; the mapper is then unchanged.
         """
+        memory = FloorMemory(self.grid.world_grid, self.memory.params)
+        if snapshot.floor_memory is not None:
+            memory.restore(snapshot.floor_memory)  # checked before the grid changes
         self.grid.restore(snapshot)
+        self.memory = memory
         self._views.clear()
         self._confirmed = None
 

@@ -15,6 +15,10 @@ crash never leaves half a map). It holds a `SavedMap`:
 ``thresholds``         (free_threshold, occupied_threshold) float64
 ``pose``               (x_m, y_m, theta_rad) float64, the robot in the map's frame
 ``travelled_m``        float64, the robot's travel fused into the map
+``confirmed_floor``    optional (rows, cols) uint8, 1 = floor confirmed by driving or
+                       parallax (`app.mapping.floor_memory`)
+``floor_appearances``  optional (k, 4) float32, learned floor colours (scaled CIELAB)
+                       and the cells behind each; both or neither
 =====================  ==========================================================
 
 `load_map` checks everything it reads and raises `MapFileError` with the reason; it
@@ -38,6 +42,7 @@ import os
 import re
 import zipfile
 import zlib
+from collections.abc import Callable
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any
@@ -46,6 +51,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.fileio import write_bytes_atomic
+from app.mapping.floor_memory import FloorMemoryState
 from app.mapping.frames import GroundGrid, Pose2D, describe_grid, same_geometry
 from app.mapping.occupancy import FREE, OCCUPIED, UNKNOWN, SavedMap
 
@@ -88,6 +94,16 @@ def map_arrays(snapshot: SavedMap) -> dict[str, NDArray[np.generic]]:
         ),
         "pose": np.array([pose.x_m, pose.y_m, pose.theta_rad], dtype=np.float64),
         "travelled_m": np.array(snapshot.travelled_m, dtype=np.float64),
+        **(
+            {}
+            if snapshot.floor_memory is None
+            else {
+                "confirmed_floor": np.asarray(snapshot.floor_memory.confirmed, dtype=np.uint8),
+                "floor_appearances": np.asarray(
+                    snapshot.floor_memory.appearances, dtype=np.float32
+                ),
+            }
+        ),
     }
 
 
@@ -216,6 +232,7 @@ def _read_map(
     free_threshold, occupied_threshold = floats("thresholds", (2,))
     x_m, y_m, theta_rad = floats("pose", (3,))
     travelled = float(floats("travelled_m", ()))
+    memory = _read_floor_memory(archive, read, path, grid)
     try:
         return SavedMap(
             log_odds=np.asarray(log_odds, dtype=np.float32),
@@ -224,9 +241,51 @@ def _read_map(
             occupied_threshold=float(occupied_threshold),
             T_world_robot=Pose2D(float(x_m), float(y_m), float(theta_rad)),
             travelled_m=travelled,
+            floor_memory=memory,
         )
     except ValueError as exc:
         raise MapFileError(f"{path}: not a usable map ({exc})") from exc
+
+
+def _read_floor_memory(
+    archive: zipfile.ZipFile,
+    read: Callable[[str], NDArray[np.generic]],
+    path: Path,
+    grid: GroundGrid,
+) -> FloorMemoryState | None:
+    names = set(archive.namelist())
+    present = [n for n in ("confirmed_floor", "floor_appearances") if f"{n}.npy" in names]
+    if not present:
+        return None  # a map saved before the floor memory existed
+    if len(present) == 1:
+        raise MapFileError(f"{path}: {present[0]!r} without its partner array")
+    confirmed = read("confirmed_floor")
+    if confirmed.dtype != np.uint8 or confirmed.shape != grid.shape:
+        raise MapFileError(
+            f"{path}: 'confirmed_floor' must be uint8 of shape {grid.shape}, got"
+            f" {confirmed.dtype} {confirmed.shape}"
+        )
+    table = np.asarray(read("floor_appearances"))
+    counts = (
+        np.asarray(table[:, 3], dtype=np.float64)
+        if table.ndim == 2 and table.shape[1:] == (4,)
+        else None
+    )
+    if (
+        table.dtype != np.float32
+        or table.ndim != 2
+        or table.shape[1] != 4
+        or counts is None
+        or not np.isfinite(table.astype(np.float64)).all()
+        or bool((counts <= 0).any())
+    ):
+        raise MapFileError(
+            f"{path}: 'floor_appearances' must be finite float32 (k, 4) with cell counts"
+            f" > 0, got {table.dtype} {table.shape}"
+        )
+    return FloorMemoryState(
+        np.asarray(confirmed, dtype=np.uint8), np.asarray(table, dtype=np.float32)
+    )
 
 
 # ------------------------------------------------------------------ ROS map_server

@@ -88,6 +88,7 @@ import numba
 import numpy as np
 from numpy.typing import NDArray
 
+from app.mapping.floor_memory import FloorMemoryState
 from app.mapping.frames import (
     FLOOR,
     NOT_FLOOR,
@@ -763,6 +764,8 @@ class SavedMap:
     T_world_robot : Pose2D, the robot's pose in the map's frame at the last update (the
         world origin, its start pose, if there was none).
     travelled_m : float >= 0, the robot's travel fused into the map so far.
+    floor_memory : the confirmed-floor layer and learned floor appearances
+        (`app.mapping.floor_memory`), or None for a map without them.
     """
 
     log_odds: NDArray[np.float32] = field(repr=False)
@@ -771,6 +774,7 @@ class SavedMap:
     occupied_threshold: float
     T_world_robot: Pose2D
     travelled_m: float
+    floor_memory: FloorMemoryState | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         check_grid(self.world_grid, "world_grid")

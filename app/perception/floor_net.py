@@ -45,6 +45,24 @@ class FloorNetError(RuntimeError):
     """The floor network's model file is missing or unusable."""
 
 
+def scaled_lab(bgr: NDArray[np.uint8]) -> NDArray[np.float32]:
+    """The frame at network input size in the network's scaled CIELAB (H, W, 3)."""
+    small = cv2.resize(bgr, (INPUT_WIDTH_PX, INPUT_HEIGHT_PX), interpolation=cv2.INTER_AREA)
+    lab = cv2.cvtColor(small.astype(np.float32) * (1.0 / 255.0), cv2.COLOR_BGR2Lab)
+    return np.asarray((lab - _LAB_CENTER) / _LAB_SCALE, dtype=np.float32)
+
+
+def blob_for_reference(
+    lab_scaled: NDArray[np.float32], reference: NDArray[np.float32]
+) -> NDArray[np.float32]:
+    """The network's input blob with colours taken relative to ``reference`` (scaled
+    Lab): the safe zone's colour, or a floor colour learned earlier (the safe zone
+    extended over time and space, `app.mapping.floor_memory`)."""
+    relative = lab_scaled - reference
+    stacked = np.concatenate([lab_scaled, relative], axis=2)
+    return np.ascontiguousarray(stacked.transpose(2, 0, 1)[None], dtype=np.float32)
+
+
 def network_input(bgr: NDArray[np.uint8], zone_mask: NDArray[np.bool_]) -> NDArray[np.float32]:
     """The network's (1, 6, INPUT_HEIGHT_PX, INPUT_WIDTH_PX) float32 input blob.
 
@@ -58,13 +76,9 @@ def network_input(bgr: NDArray[np.uint8], zone_mask: NDArray[np.bool_]) -> NDArr
     The frame is area-resized before the colour conversion, which also smooths it
     (a 640 px frame averages 4x4 pixels per cell, in place of the thesis's Gaussian).
     """
-    small = cv2.resize(bgr, (INPUT_WIDTH_PX, INPUT_HEIGHT_PX), interpolation=cv2.INTER_AREA)
-    lab = cv2.cvtColor(small.astype(np.float32) * (1.0 / 255.0), cv2.COLOR_BGR2Lab)
-    lab_scaled = (lab - _LAB_CENTER) / _LAB_SCALE
+    lab_scaled = scaled_lab(bgr)
     zone_colour = np.median(lab_scaled[zone_mask], axis=0)
-    relative = lab_scaled - zone_colour
-    stacked = np.concatenate([lab_scaled, relative], axis=2)
-    return np.ascontiguousarray(stacked.transpose(2, 0, 1)[None], dtype=np.float32)
+    return blob_for_reference(lab_scaled, zone_colour)
 
 
 @dataclass(frozen=True)
@@ -152,3 +166,101 @@ def floor_mask(
     if output.zone_floor_probability < min_zone_confidence:
         mask &= ~zone_mask
     return mask
+
+
+SAME_AS_ZONE = 0.08
+"""A learned colour this close (scaled Lab) to the safe zone's adds nothing the first
+pass did not already see."""
+MATCH_DISTANCE = 0.15
+"""Pixels this close to a learned colour are its candidates (about 6 CIELAB units)."""
+MIN_CANDIDATE_SHARE = 0.02
+"""A second pass runs only when this share of the frame looks like a learned floor the
+first pass left out (7 ms of network time is not spent on a few stray pixels)."""
+
+
+@dataclass(frozen=True)
+class LearnedFloorPass:
+    """What the learned-floor pass did to one frame.
+
+    Attributes
+    ----------
+    probability : (OUTPUT_HEIGHT_PX, OUTPUT_WIDTH_PX) float32, the first pass's floor
+        probability raised where the second pass found connected floor
+    reference : the learned colour used (scaled Lab), or None when no pass ran
+    added_share : share of output cells that became floor
+    """
+
+    probability: NDArray[np.float32]
+    reference: tuple[float, float, float] | None
+    added_share: float
+
+
+def choose_learned_reference(
+    lab_out: NDArray[np.float32],
+    first_floor: NDArray[np.bool_],
+    zone_colour: NDArray[np.float32],
+    learned: tuple[tuple[float, float, float], ...],
+) -> tuple[float, float, float] | None:
+    """The learned floor colour that best explains what the first pass left out: the
+    one, unlike the safe zone's, with the largest share (>= `MIN_CANDIDATE_SHARE`) of
+    not-floor cells within `MATCH_DISTANCE` of it; None if none qualifies."""
+    best: tuple[float, float, float] | None = None
+    best_share = MIN_CANDIDATE_SHARE
+    not_floor = ~first_floor
+    for colour in learned:
+        c = np.asarray(colour, dtype=np.float32)
+        if float(np.linalg.norm(c - zone_colour)) <= SAME_AS_ZONE:
+            continue
+        near = np.linalg.norm(lab_out - c, axis=2) <= MATCH_DISTANCE
+        share = float(np.count_nonzero(near & not_floor)) / near.size
+        if share >= best_share:
+            best, best_share = colour, share
+    return best
+
+
+def connected_to(extra: NDArray[np.bool_], anchor: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """The parts of ``extra`` (8-connected) that touch ``anchor`` or the bottom row: new
+    floor must join the floor the robot stands on, not float in the image (a learned
+    colour on a shelf is not floor)."""
+    if not extra.any():
+        return extra
+    seed = anchor.copy()
+    seed[-1, :] = True
+    grown = cv2.dilate(seed.view(np.uint8), np.ones((3, 3), np.uint8)).astype(bool)
+    n, labels = cv2.connectedComponents(extra.view(np.uint8), connectivity=8)
+    touching = np.unique(labels[grown & extra])
+    keep = np.zeros(n, dtype=bool)
+    keep[touching] = True
+    keep[0] = False
+    return np.asarray(keep[labels], dtype=np.bool_)
+
+
+def learned_floor_pass(
+    net: FloorNet,
+    lab_scaled: NDArray[np.float32],
+    first: FloorNetOutput,
+    zone_colour: NDArray[np.float32],
+    zone_mask_out: NDArray[np.bool_],
+    learned: tuple[tuple[float, float, float], ...],
+) -> LearnedFloorPass:
+    """Run the network once more with colours relative to a learned floor colour (when
+    one explains part of the frame) and keep the new floor that joins the first pass's."""
+    probability = first.probability
+    if not learned:
+        return LearnedFloorPass(probability, None, 0.0)
+    lab_out = np.asarray(
+        cv2.resize(lab_scaled, (OUTPUT_WIDTH_PX, OUTPUT_HEIGHT_PX), interpolation=cv2.INTER_AREA),
+        dtype=np.float32,
+    )
+    first_floor = probability > 0.5
+    reference = choose_learned_reference(lab_out, first_floor, zone_colour, learned)
+    if reference is None:
+        return LearnedFloorPass(probability, None, 0.0)
+    second = net.run(
+        blob_for_reference(lab_scaled, np.asarray(reference, dtype=np.float32)), zone_mask_out
+    )
+    extra = connected_to((second.probability > 0.5) & ~first_floor, first_floor)
+    combined = np.where(extra, np.maximum(probability, second.probability), probability)
+    return LearnedFloorPass(
+        combined.astype(np.float32), reference, float(np.count_nonzero(extra)) / extra.size
+    )

@@ -51,8 +51,10 @@ from app.perception.floor_net import (
     OUTPUT_HEIGHT_PX,
     OUTPUT_WIDTH_PX,
     FloorNet,
+    blob_for_reference,
     floor_mask,
-    network_input,
+    learned_floor_pass,
+    scaled_lab,
 )
 from app.perception.floor_weights import FIRST_PASS_WEIGHTS, SECOND_PASS_WEIGHTS
 from app.perception.image_checks import check_bgr_image
@@ -154,6 +156,10 @@ class FloorSegmenter:
         self._zone_cache: tuple[tuple[int, int], NDArray[np.bool_]] | None = None
         self._color_buffer: NDArray[np.float32] | None = None
         self._net: FloorNet | None = None
+        self.learned_floor: tuple[tuple[float, float, float], ...] = ()
+        """Floor colours learned on the way (scaled Lab, `app.mapping.floor_memory`):
+        ``floornet`` runs a second pass relative to the one that explains the most of
+        what its first pass left out. Set by the daemon before each frame."""
         if self.method == "floornet":
             # Loaded here, not on the first frame: a missing model file fails at start-up.
             self._net = FloorNet(Path(config.floornet_model_path or DEFAULT_MODEL_PATH))
@@ -309,11 +315,20 @@ def _segment_floornet(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorResul
     watch = _Stopwatch()
     zone_mask = seg.zone_mask(bgr.shape[:2])
     watch.lap("safe_zone")
-    blob = network_input(bgr, seg._net_zone_in)
+    lab = scaled_lab(bgr)
+    zone_colour = np.median(lab[seg._net_zone_in], axis=0)
+    blob = blob_for_reference(lab, zone_colour)
     watch.lap("input")
     assert seg._net is not None
     output = seg._net.run(blob, seg._net_zone_out)
     watch.lap("network")
+    if seg.learned_floor:
+        learned = learned_floor_pass(
+            seg._net, lab, output, zone_colour, seg._net_zone_out, seg.learned_floor
+        )
+        # The premise stays the first pass's: the safe zone is judged as it is.
+        output = replace(output, probability=learned.probability)
+        watch.lap("learned_floor")
     floor = floor_mask(output, zone_mask, min_zone_confidence=seg.config.zone_min_floor_confidence)
     watch.lap("combine")
     return FloorResult(

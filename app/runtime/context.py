@@ -38,6 +38,9 @@ class Shared:
     autonomous: bool = False
     calibrating: bool = False
     camera_ok: bool = False
+    floor_appearances: tuple[tuple[float, float, float], ...] = ()
+    """Floor colours the map has learned (an immutable tuple the mapping stage replaces;
+    perception reads it before each frame)."""
     protective_stop: ProtectiveStop | None = None
     """The stop layer the drive stage applied last (None: none holds the robot)."""
     counters: Counters = field(default_factory=Counters)

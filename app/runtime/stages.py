@@ -174,6 +174,8 @@ class PerceptionStage:
                 segmenter = self.segmenter_factory(shared.config.perception)
             start = shared.clock()
             self.frame_ages.append(start - frame.capture_s)
+            if hasattr(segmenter, "learned_floor"):
+                segmenter.learned_floor = shared.floor_appearances
             try:
                 result = await self.worker.run(segmenter.segment, frame.image)
             except (ImageError, SafeZoneError) as exc:
@@ -318,6 +320,8 @@ class MappingStage:
                     self._goal_since = None  # patience counts only while exploring
             shared.stages.add("mapping", shared.clock() - start)
             shared.counters.frames_mapped += 1
+            if snapshot is not None:
+                shared.floor_appearances = mapper.memory.appearances()
             shared.maps.publish(msg)
             if snapshot is not None:
                 shared.world_maps.publish(snapshot)

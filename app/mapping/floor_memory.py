@@ -1,0 +1,329 @@
+"""Floor the robot knows is floor, and the floor appearances it learned on the way.
+
+A colour method ends the floor wherever the floor's look changes (a rug, the kitchen's
+tiles, a threshold), and a map fed only by it keeps every such edge as a wall. This
+module is the map's memory of geometry and experience, beside the log-odds grid:
+
+* ``confirmed``: world cells known to be flat floor, because the robot's footprint drove
+  over them or motion parallax found them on the floor plane. On such a cell a colour
+  boundary is not an obstacle (`FloorMemory.correct_patch` turns it back into floor)
+  until geometry (parallax) shows something standing there (`FloorMemory.mark_standing`).
+* a colour layer: each world cell's mean colour as the camera saw it from close by (a
+  cell's colour is only known while it is ahead of the robot, not when the robot stands
+  on it).
+* ``appearances``: the colours of confirmed floor (in the floor network's scaled CIELAB),
+  clustered, each with the number of cells behind it. Perception uses them as extra
+  safe-zone references (the thesis's safe zone, extended over time and space), so after
+  one look at the kitchen's tiles they are floor in every later frame. A colour seen
+  standing up is unlearned.
+
+Pure computation on arrays; not thread-safe (the mapping stage owns it).
+"""
+
+from __future__ import annotations
+
+import math
+from dataclasses import dataclass
+
+import cv2
+import numba
+import numpy as np
+from numpy.typing import NDArray
+
+from app.mapping.frames import FLOOR, NOT_FLOOR, UNSEEN, GroundGrid, Pose2D
+
+LAB_CENTER = np.array([50.0, 0.0, 0.0], dtype=np.float32)
+LAB_SCALE = np.array([50.0, 40.0, 40.0], dtype=np.float32)
+"""The floor network's colour scaling (`app.perception.floor_net`): CIELAB to about
+[-1, 1], so appearances can be handed to it as they are."""
+
+
+@dataclass(frozen=True)
+class FloorMemoryParams:
+    """Attributes
+    ----------
+    near_m : float, cells farther than this ahead of the robot add no colour (far cells
+        are few pixels, blurred, and their ground position is least certain)
+    colour_rate : float in (0, 1], the weight of a new sighting in a cell's running mean
+        colour once the cell has been seen a few times
+    merge_distance : float, scaled-Lab distance within which a colour joins an existing
+        appearance (0.12 is about 5 CIELAB units of lightness)
+    min_cells : int, cells an appearance needs before perception uses it (about 0.1 m²
+        at 5 cm cells: a lucky sighting of one plank does not make a material)
+    max_appearances : int, the smallest appearance is dropped beyond this
+    unlearn_distance : float, scaled-Lab distance within which a colour seen standing
+        takes cells from an appearance
+    """
+
+    near_m: float = 1.5
+    colour_rate: float = 0.3
+    merge_distance: float = 0.12
+    min_cells: int = 40
+    max_appearances: int = 8
+    unlearn_distance: float = 0.10
+
+    def __post_init__(self) -> None:
+        if not (self.near_m > 0 and 0 < self.colour_rate <= 1):
+            raise ValueError("FloorMemoryParams: need near_m > 0 and 0 < colour_rate <= 1")
+        if not (self.merge_distance > 0 and self.unlearn_distance > 0):
+            raise ValueError("FloorMemoryParams: distances must be > 0")
+        if self.min_cells < 1 or self.max_appearances < 1:
+            raise ValueError("FloorMemoryParams: min_cells and max_appearances must be >= 1")
+
+
+@numba.njit(cache=True, nogil=True)
+def _patch_world_index(
+    patch_x: NDArray[np.float64],
+    patch_y: NDArray[np.float64],
+    cos_t: float,
+    sin_t: float,
+    tx: float,
+    ty: float,
+    world_x_max: float,
+    world_y_max: float,
+    world_cell: float,
+    w_rows: int,
+    w_cols: int,
+) -> NDArray[np.int64]:
+    out = np.empty((patch_x.shape[0], patch_y.shape[0]), dtype=np.int64)
+    inv = 1.0 / world_cell
+    for i in range(patch_x.shape[0]):
+        row_base = (world_x_max - (cos_t * patch_x[i] + tx)) * inv
+        col_base = (world_y_max - (sin_t * patch_x[i] + ty)) * inv
+        for j in range(patch_y.shape[0]):
+            r = math.floor(row_base + sin_t * patch_y[j] * inv)
+            c = math.floor(col_base - cos_t * patch_y[j] * inv)
+            out[i, j] = r * w_cols + c if 0 <= r < w_rows and 0 <= c < w_cols else -1
+    return out
+
+
+def patch_world_index(
+    patch_grid: GroundGrid, world_grid: GroundGrid, T_world_robot: Pose2D
+) -> NDArray[np.int64]:
+    """(patch rows, patch cols) int64: the flat world-grid index of each robot-frame
+    patch cell's centre seen from ``T_world_robot`` (-1 off the world grid). The same
+    mapping `app.mapping.occupancy.fuse_patch_labels` fuses with."""
+    patch_x = patch_grid.x_max_m - (np.arange(patch_grid.rows) + 0.5) * patch_grid.cell_m
+    patch_y = patch_grid.y_max_m - (np.arange(patch_grid.cols) + 0.5) * patch_grid.cell_m
+    return np.asarray(
+        _patch_world_index(
+            patch_x.astype(np.float64),
+            patch_y.astype(np.float64),
+            math.cos(T_world_robot.theta_rad),
+            math.sin(T_world_robot.theta_rad),
+            float(T_world_robot.x_m),
+            float(T_world_robot.y_m),
+            float(world_grid.x_max_m),
+            float(world_grid.y_max_m),
+            float(world_grid.cell_m),
+            world_grid.rows,
+            world_grid.cols,
+        )
+    )
+
+
+def bgr_to_scaled_lab(bgr: NDArray[np.floating]) -> NDArray[np.float32]:
+    """(N, 3) BGR in [0, 255] -> (N, 3) CIELAB scaled as the floor network's input."""
+    pixels = np.asarray(bgr, dtype=np.float32).reshape(-1, 1, 3) * np.float32(1.0 / 255.0)
+    lab = cv2.cvtColor(pixels, cv2.COLOR_BGR2Lab).reshape(-1, 3)
+    return np.asarray((lab - LAB_CENTER) / LAB_SCALE, dtype=np.float32)
+
+
+@dataclass(frozen=True, eq=False)
+class FloorMemoryState:
+    """What a map file keeps of the memory (the colour layer is rebuilt by looking).
+
+    Attributes
+    ----------
+    confirmed : (rows, cols) uint8, 1 = confirmed flat floor
+    appearances : (k, 4) float32, scaled-Lab colour and cell count of each appearance
+    """
+
+    confirmed: NDArray[np.uint8]
+    appearances: NDArray[np.float32]
+
+
+class FloorMemory:
+    """The confirmed-floor layer, the colour layer and the learned appearances of one
+    world grid (see the module docstring)."""
+
+    def __init__(self, world_grid: GroundGrid, params: FloorMemoryParams | None = None) -> None:
+        self.world_grid = world_grid
+        self.params = params if params is not None else FloorMemoryParams()
+        n = world_grid.rows * world_grid.cols
+        self.confirmed = np.zeros(world_grid.shape, dtype=np.uint8)
+        self._colour = np.zeros((n, 3), dtype=np.float32)
+        self._sightings = np.zeros(n, dtype=np.uint16)
+        self._appearance_lab = np.zeros((0, 3), dtype=np.float32)
+        self._appearance_cells = np.zeros(0, dtype=np.float64)
+        self.learned_cells = 0
+        """Confirmed cells whose colour joined an appearance (for the report)."""
+        self.unlearned = 0
+        """Appearances dropped because their colour was seen standing."""
+
+    # -- the colour layer ----------------------------------------------------------------
+
+    def observe_colours(
+        self,
+        patch_bgr: NDArray[np.uint8],
+        patch: NDArray[np.uint8],
+        index: NDArray[np.int64],
+        near: NDArray[np.bool_],
+    ) -> None:
+        """Blend one frame's bird's-eye colours (``patch_bgr``, same raster as ``patch``)
+        into the cells ``index`` maps them to, for seen cells where ``near`` holds."""
+        use = near & (patch != UNSEEN) & (index >= 0)
+        cells = index[use]
+        if cells.size == 0:
+            return
+        n = self._sightings.size
+        counts = np.bincount(cells, minlength=n)
+        hit = np.flatnonzero(counts)
+        colours = patch_bgr[use].astype(np.float64)
+        means = np.empty((hit.size, 3), dtype=np.float32)
+        for ch in range(3):
+            sums = np.bincount(cells, weights=colours[:, ch], minlength=n)
+            means[:, ch] = sums[hit] / counts[hit]
+        seen = self._sightings[hit].astype(np.float32)
+        rate = np.maximum(np.float32(self.params.colour_rate), 1.0 / (seen + 1.0))
+        self._colour[hit] += (means - self._colour[hit]) * rate[:, None]
+        self._sightings[hit] = np.minimum(seen + 1, 60000).astype(np.uint16)
+
+    def colour_of(self, cells: NDArray[np.int64]) -> NDArray[np.float32]:
+        """(N, 3) mean BGR of flat cell indices (undefined where never seen)."""
+        return self._colour[cells]
+
+    # -- confirmed floor -------------------------------------------------------------------
+
+    def confirm_cells(self, cells: NDArray[np.int64]) -> int:
+        """Mark flat cell indices as confirmed floor; the newly confirmed ones that have
+        been seen teach their colour. Returns how many were new."""
+        cells = np.unique(cells[cells >= 0])
+        flat = self.confirmed.reshape(-1)
+        new = cells[flat[cells] == 0]
+        flat[new] = 1
+        seen = new[self._sightings[new] > 0]
+        if seen.size:
+            self._learn(bgr_to_scaled_lab(self._colour[seen]))
+            self.learned_cells += int(seen.size)
+        return int(new.size)
+
+    def drive_over(self, T_world_robot: Pose2D, radius_m: float) -> int:
+        """The robot stands on the cells within ``radius_m`` of its centre: floor."""
+        grid = self.world_grid
+        inv = 1.0 / grid.cell_m
+        r0 = (grid.x_max_m - T_world_robot.x_m) * inv
+        c0 = (grid.y_max_m - T_world_robot.y_m) * inv
+        span = radius_m * inv
+        rows = np.arange(max(math.floor(r0 - span), 0), min(math.ceil(r0 + span), grid.rows))
+        cols = np.arange(max(math.floor(c0 - span), 0), min(math.ceil(c0 + span), grid.cols))
+        if rows.size == 0 or cols.size == 0:
+            return 0
+        dr = rows[:, None] + 0.5 - r0
+        dc = cols[None, :] + 0.5 - c0
+        inside = dr * dr + dc * dc <= span * span
+        rr, cc = np.nonzero(inside)
+        return self.confirm_cells(rows[rr] * grid.cols + cols[cc])
+
+    def mark_standing(self, cells: NDArray[np.int64]) -> None:
+        """Geometry saw something standing on these cells: they are no longer known
+        floor, and an appearance of their colour is unlearned (a floor-coloured box)."""
+        cells = np.unique(cells[cells >= 0])
+        if cells.size == 0:
+            return
+        self.confirmed.reshape(-1)[cells] = 0
+        seen = cells[self._sightings[cells] > 0]
+        if seen.size == 0 or self._appearance_lab.shape[0] == 0:
+            return
+        lab = bgr_to_scaled_lab(self._colour[seen])
+        distance = np.linalg.norm(lab[:, None, :] - self._appearance_lab[None, :, :], axis=2)
+        votes = (distance <= self.params.unlearn_distance).sum(axis=0)
+        # A standing colour costs twice what a floor sighting gives: the floor must be
+        # confirmed again, more than it stood, to come back.
+        self._appearance_cells -= 2.0 * votes
+        keep = self._appearance_cells > 0
+        self.unlearned += int(np.count_nonzero(~keep & (votes > 0)))
+        self._appearance_lab = self._appearance_lab[keep]
+        self._appearance_cells = self._appearance_cells[keep]
+
+    def correct_patch(self, patch: NDArray[np.uint8], index: NDArray[np.int64]) -> int:
+        """In place: patch cells the colour method calls not-floor on confirmed floor
+        become floor. Returns how many were changed."""
+        on_map = index >= 0
+        known = np.zeros(patch.shape, dtype=bool)
+        known[on_map] = self.confirmed.reshape(-1)[index[on_map]] == 1
+        change = known & (patch == NOT_FLOOR)
+        patch[change] = FLOOR
+        return int(np.count_nonzero(change))
+
+    # -- appearances --------------------------------------------------------------------
+
+    def _learn(self, lab: NDArray[np.float32]) -> None:
+        """Cluster new floor colours into the appearances (leader clustering on colours
+        rounded to a quarter of the merge distance, so a frame costs a few dozen steps)."""
+        step = self.params.merge_distance / 4
+        keys, counts = np.unique(np.round(lab / step).astype(np.int32), axis=0, return_counts=True)
+        for key, count in zip(keys, counts, strict=True):
+            colour = key.astype(np.float32) * np.float32(step)
+            if self._appearance_lab.shape[0]:
+                distance = np.linalg.norm(self._appearance_lab - colour, axis=1)
+                best = int(np.argmin(distance))
+                if distance[best] <= self.params.merge_distance:
+                    total = self._appearance_cells[best] + count
+                    self._appearance_lab[best] += (
+                        (colour - self._appearance_lab[best]) * count / total
+                    ).astype(np.float32)
+                    self._appearance_cells[best] = total
+                    continue
+            self._appearance_lab = np.vstack([self._appearance_lab, colour[None]])
+            self._appearance_cells = np.append(self._appearance_cells, float(count))
+        if self._appearance_lab.shape[0] > self.params.max_appearances:
+            order = np.argsort(-self._appearance_cells)[: self.params.max_appearances]
+            self._appearance_lab = self._appearance_lab[order]
+            self._appearance_cells = self._appearance_cells[order]
+
+    def appearances(self) -> tuple[tuple[float, float, float], ...]:
+        """The learned floor colours perception may use (scaled Lab), largest first."""
+        ready = np.flatnonzero(self._appearance_cells >= self.params.min_cells)
+        order = ready[np.argsort(-self._appearance_cells[ready])]
+        return tuple((float(c[0]), float(c[1]), float(c[2])) for c in self._appearance_lab[order])
+
+    def appearance_cells(self) -> NDArray[np.float64]:
+        """Cell counts in the order of the internal list (tests, status)."""
+        return self._appearance_cells.copy()
+
+    # -- persistence ----------------------------------------------------------------------
+
+    def state(self) -> FloorMemoryState:
+        table = np.column_stack([self._appearance_lab, self._appearance_cells]).astype(np.float32)
+        return FloorMemoryState(self.confirmed.copy(), table.reshape(-1, 4))
+
+    def restore(self, state: FloorMemoryState) -> None:
+        """Continue from a saved map's memory (the colour layer starts empty).
+
+        Raises
+        ------
+        ValueError : a confirmed layer of another shape or a malformed appearance table
+        """
+        if state.confirmed.shape != self.world_grid.shape:
+            raise ValueError(
+                f"confirmed floor layer: shape {state.confirmed.shape}, grid is"
+                f" {self.world_grid.shape}"
+            )
+        table = np.asarray(state.appearances, dtype=np.float32)
+        if table.ndim != 2 or table.shape[1] != 4 or not np.isfinite(table).all():
+            raise ValueError(f"floor appearances: expected finite (k, 4), got {table.shape}")
+        if (table[:, 3] <= 0).any():
+            raise ValueError("floor appearances: every cell count must be > 0")
+        self.confirmed[...] = state.confirmed != 0
+        self._appearance_lab = table[:, :3].copy()
+        self._appearance_cells = table[:, 3].astype(np.float64)
+        self._colour.fill(0.0)
+        self._sightings.fill(0)
+
+    def reset(self) -> None:
+        self.confirmed.fill(0)
+        self._colour.fill(0.0)
+        self._sightings.fill(0)
+        self._appearance_lab = np.zeros((0, 3), dtype=np.float32)
+        self._appearance_cells = np.zeros(0, dtype=np.float64)

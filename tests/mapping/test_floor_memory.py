@@ -1,0 +1,195 @@
+"""The confirmed-floor layer and the learned floor appearances (exact answers on small
+synthetic grids)."""
+
+from __future__ import annotations
+
+from pathlib import Path
+
+import numpy as np
+import pytest
+
+from app.mapping.floor_memory import (
+    FloorMemory,
+    FloorMemoryParams,
+    FloorMemoryState,
+    bgr_to_scaled_lab,
+    patch_world_index,
+)
+from app.mapping.frames import FLOOR, NOT_FLOOR, UNSEEN, GroundGrid, Pose2D
+from app.mapping.map_files import MapFileError, load_map, save_map
+from app.mapping.occupancy import FREE, OCCUPIED, OccupancyGrid, OccupancyParams
+
+WORLD = GroundGrid.covering(x_min_m=-2.0, x_max_m=2.0, y_min_m=-2.0, y_max_m=2.0, cell_m=0.05)
+PATCH = GroundGrid.covering(x_min_m=0.1, x_max_m=1.6, y_min_m=-0.5, y_max_m=0.5, cell_m=0.01)
+TILE_BGR = (190, 200, 207)
+
+
+def patch_x() -> np.ndarray:
+    return PATCH.cell_centers()[0]
+
+
+def threshold_patch() -> np.ndarray:
+    """Floor up to x = 0.8 m, a 10 cm strip the colour method calls not-floor, floor."""
+    patch = np.full(PATCH.shape, FLOOR, np.uint8)
+    x = patch_x()
+    patch[(x >= 0.8) & (x < 0.9)] = NOT_FLOOR
+    return patch
+
+
+def world_cell(xy: tuple[float, float]) -> tuple[int, int]:
+    r, c = WORLD.cell_of(np.array([xy]))[0]
+    return int(r), int(c)
+
+
+def test_patch_index_matches_the_grids_own_cell_lookup() -> None:
+    pose = Pose2D(0.3, -0.2, 0.7)
+    index = patch_world_index(PATCH, WORLD, pose)
+    x, y = PATCH.cell_centers()
+    world_xy = pose.apply(np.column_stack([x.ravel(), y.ravel()]))
+    rc = WORLD.cell_of(world_xy)
+    assert np.array_equal(index.ravel(), rc[:, 0] * WORLD.cols + rc[:, 1])
+
+
+def test_a_threshold_crossed_becomes_free_and_stays_free() -> None:
+    grid = OccupancyGrid(WORLD, OccupancyParams(half_distance_m=float("inf")))
+    memory = FloorMemory(WORLD)
+    start = Pose2D(-1.0, 0.0, 0.0)
+    strip = world_cell((-1.0 + 0.81, 0.0))
+
+    def look(pose: Pose2D) -> int:
+        patch = threshold_patch()
+        # The strip is fixed in the world: shift it in the robot frame as the robot moves.
+        shift = pose.x_m - start.x_m
+        x = patch_x()
+        patch[:] = FLOOR
+        patch[(x + shift >= 0.8) & (x + shift < 0.9)] = NOT_FLOOR
+        changed = memory.correct_patch(patch, patch_world_index(PATCH, WORLD, pose))
+        grid.update(patch, PATCH, pose, (0.0, 0.0))
+        return changed
+
+    assert look(start) == 0
+    assert grid.classify()[strip] == OCCUPIED  # before: the colour edge is a wall
+    # The robot drives across the strip; its footprint confirms the floor under it.
+    for k in range(1, 21):
+        pose = Pose2D(start.x_m + 0.05 * k, 0.0, 0.0)
+        memory.drive_over(pose, 0.12)
+    assert memory.confirmed[strip] == 1
+    back = start
+    for _ in range(6):
+        assert look(back) > 0
+    assert grid.classify()[strip] == FREE
+    for _ in range(20):
+        look(back)
+    assert grid.classify()[strip] == FREE
+
+
+def test_a_box_on_confirmed_floor_becomes_occupied_once_seen_standing() -> None:
+    grid = OccupancyGrid(WORLD, OccupancyParams(half_distance_m=float("inf")))
+    memory = FloorMemory(WORLD)
+    pose = Pose2D(-1.0, 0.0, 0.0)
+    index = patch_world_index(PATCH, WORLD, pose)
+    memory.confirm_cells(index.ravel())
+    box = world_cell((-1.0 + 1.0, 0.0))
+    x, y = PATCH.cell_centers()
+    box_cells = (np.abs(x - 1.0) < 0.05) & (np.abs(y) < 0.05)
+
+    def look() -> None:
+        patch = np.full(PATCH.shape, FLOOR, np.uint8)
+        patch[(x >= 0.95) & (np.abs(y) < 0.05)] = NOT_FLOOR  # the box and its shadow
+        memory.correct_patch(patch, index)
+        grid.update(patch, PATCH, pose, (0.0, 0.0))
+
+    for _ in range(3):
+        look()
+    assert grid.classify()[box] == FREE  # colour alone does not undo confirmed floor
+    memory.mark_standing(index[box_cells])
+    assert memory.confirmed[box] == 0
+    for _ in range(8):
+        look()
+    assert grid.classify()[box] == OCCUPIED
+
+
+def uniform_patch_bgr(bgr: tuple[int, int, int]) -> np.ndarray:
+    return np.broadcast_to(np.array(bgr, np.uint8), (*PATCH.shape, 3)).copy()
+
+
+def test_confirmed_floor_teaches_its_colour_and_a_standing_colour_is_unlearned() -> None:
+    memory = FloorMemory(WORLD, FloorMemoryParams(min_cells=40))
+    pose = Pose2D(-1.0, 0.0, 0.0)
+    index = patch_world_index(PATCH, WORLD, pose)
+    patch = np.full(PATCH.shape, NOT_FLOOR, np.uint8)
+    near = np.ones(PATCH.shape, bool)
+    memory.observe_colours(uniform_patch_bgr(TILE_BGR), patch, index, near)
+    assert memory.appearances() == ()
+    x, y = PATCH.cell_centers()
+    few = index[(x < 0.3) & (np.abs(y) < 0.1)]
+    memory.confirm_cells(few)
+    assert memory.appearances() == ()  # 4 x 4 cells: not yet a material
+    memory.confirm_cells(index.ravel())
+    learned = memory.appearances()
+    assert len(learned) == 1
+    expected = bgr_to_scaled_lab(np.array([TILE_BGR], np.float32))[0]
+    assert np.allclose(learned[0], expected, atol=0.04)
+    # Confirming the same cells again teaches nothing more.
+    cells_before = memory.appearance_cells().copy()
+    memory.confirm_cells(index.ravel())
+    assert np.array_equal(memory.appearance_cells(), cells_before)
+    # A box of that colour is seen standing over enough cells: the colour is unlearned.
+    memory.mark_standing(index.ravel())
+    assert memory.appearances() == ()
+    assert memory.unlearned == 1
+
+
+def test_unseen_cells_teach_nothing() -> None:
+    memory = FloorMemory(WORLD, FloorMemoryParams(min_cells=1))
+    index = patch_world_index(PATCH, WORLD, Pose2D(-1.0, 0.0, 0.0))
+    patch = np.full(PATCH.shape, UNSEEN, np.uint8)
+    memory.observe_colours(
+        uniform_patch_bgr(TILE_BGR), patch, index, np.ones(PATCH.shape, bool)
+    )
+    memory.confirm_cells(index.ravel())
+    assert memory.appearances() == ()
+
+
+def test_the_memory_is_saved_with_the_map(tmp_path: Path) -> None:
+    grid = OccupancyGrid(WORLD)
+    memory = FloorMemory(WORLD, FloorMemoryParams(min_cells=1))
+    index = patch_world_index(PATCH, WORLD, Pose2D())
+    memory.observe_colours(
+        uniform_patch_bgr(TILE_BGR),
+        np.full(PATCH.shape, FLOOR, np.uint8),
+        index,
+        np.ones(PATCH.shape, bool),
+    )
+    memory.confirm_cells(index.ravel())
+    from dataclasses import replace
+
+    snapshot = replace(grid.snapshot(), floor_memory=memory.state())
+    save_map(tmp_path / "m.npz", snapshot)
+    loaded = load_map(tmp_path / "m.npz")
+    assert loaded.floor_memory is not None
+    again = FloorMemory(WORLD, FloorMemoryParams(min_cells=1))
+    again.restore(loaded.floor_memory)
+    assert np.array_equal(again.confirmed, memory.confirmed)
+    assert again.appearances() == memory.appearances()
+
+
+def test_a_map_with_half_a_memory_is_refused(tmp_path: Path) -> None:
+    from app.mapping.map_files import map_arrays
+
+    grid = OccupancyGrid(WORLD)
+    memory = FloorMemory(WORLD)
+    from dataclasses import replace
+
+    arrays = map_arrays(replace(grid.snapshot(), floor_memory=memory.state()))
+    del arrays["floor_appearances"]
+    np.savez(tmp_path / "half.npz", **arrays)  # type: ignore[arg-type]
+    with pytest.raises(MapFileError, match="without its partner"):
+        load_map(tmp_path / "half.npz")
+
+
+def test_restore_refuses_another_grid() -> None:
+    memory = FloorMemory(WORLD)
+    state = FloorMemoryState(np.zeros((3, 3), np.uint8), np.zeros((0, 4), np.float32))
+    with pytest.raises(ValueError, match="shape"):
+        memory.restore(state)
