@@ -144,9 +144,7 @@ def test_unseen_cells_teach_nothing() -> None:
     memory = FloorMemory(WORLD, FloorMemoryParams(min_cells=1))
     index = patch_world_index(PATCH, WORLD, Pose2D(-1.0, 0.0, 0.0))
     patch = np.full(PATCH.shape, UNSEEN, np.uint8)
-    memory.observe_colours(
-        uniform_patch_bgr(TILE_BGR), patch, index, np.ones(PATCH.shape, bool)
-    )
+    memory.observe_colours(uniform_patch_bgr(TILE_BGR), patch, index, np.ones(PATCH.shape, bool))
     memory.confirm_cells(index.ravel())
     assert memory.appearances() == ()
 

@@ -1,0 +1,63 @@
+"""floornet's second pass relative to a floor colour learned on the way."""
+
+from __future__ import annotations
+
+import numpy as np
+
+from app.config import DEFAULT_CONFIG_PATH, load_config
+from app.mapping.floor_memory import bgr_to_scaled_lab
+from app.mapping.frames import Pose2D
+from app.perception.floor_net import choose_learned_reference, connected_to
+from app.perception.pipeline import FloorSegmenter
+from app.sim.setup import renderer_from_config
+
+
+def test_connected_to_keeps_only_parts_touching_the_anchor_or_the_bottom() -> None:
+    extra = np.zeros((6, 6), bool)
+    extra[0:2, 0:2] = True  # floating: dropped
+    extra[2:4, 4:6] = True  # touches the anchor (diagonally): kept
+    extra[5, 0] = True  # on the bottom row: kept
+    anchor = np.zeros((6, 6), bool)
+    anchor[4, 3] = True
+    kept = connected_to(extra, anchor)
+    expected = np.zeros((6, 6), bool)
+    expected[2:4, 4:6] = True
+    expected[5, 0] = True
+    assert np.array_equal(kept, expected)
+
+
+def test_the_reference_is_the_learned_colour_that_explains_the_missed_floor() -> None:
+    lab = np.zeros((10, 10, 3), np.float32)
+    lab[:5] = (0.5, 0.1, 0.1)  # the missed part has colour A
+    first = np.zeros((10, 10), bool)
+    first[5:] = True  # the first pass found the lower half (colour 0)
+    zone = np.zeros(3, np.float32)
+    a, b = (0.5, 0.1, 0.1), (-0.5, 0.0, 0.0)
+    assert choose_learned_reference(lab, first, zone, (b, a)) == a
+    assert choose_learned_reference(lab, first, zone, (b,)) is None
+    # A learned colour like the safe zone's adds nothing: not chosen.
+    assert choose_learned_reference(lab, first, zone, ((0.01, 0.0, 0.0),)) is None
+
+
+def test_a_learned_tile_colour_makes_the_kitchen_floor_from_the_wood_floor() -> None:
+    config = load_config(DEFAULT_CONFIG_PATH)
+    renderer = renderer_from_config(config)
+    # In the living room, 0.45 m from the doorway, looking into the tiled kitchen.
+    frame = renderer.render(Pose2D(4.05, 2.8, 0.0))
+    segmenter = FloorSegmenter(config.perception, method="floornet")
+    truth = frame.floor_mask
+
+    def scores() -> tuple[float, float]:
+        mask = segmenter.segment(frame.image).floor_mask
+        return float((mask & truth).sum() / (mask | truth).sum()), float(
+            (mask & truth).sum() / max(mask.sum(), 1)
+        )
+
+    iou_before, _ = scores()
+    tiles = bgr_to_scaled_lab(np.array([[0xBA, 0xC8, 0xCF]], np.float32))[0]
+    segmenter.learned_floor = (tuple(float(v) for v in tiles),)  # type: ignore[assignment]
+    iou_after, precision_after = scores()
+    assert iou_after >= iou_before + 0.2, (iou_before, iou_after)
+    assert precision_after >= 0.98
+    segmenter.learned_floor = ()
+    assert scores()[0] == iou_before
