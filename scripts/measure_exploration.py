@@ -1,0 +1,138 @@
+#!/usr/bin/env python3
+"""Explore every shipped world with several seeds and write docs/exploration.md.
+
+    .venv/bin/python scripts/measure_exploration.py [--duration-s 300] [--seeds 0 1 2]
+        [--worlds two-rooms home office]
+
+Each run is ``floornav run --world W --seed S --duration-s D --report R --map M``, one at
+a time (the runs measure latency: run them on a quiet machine). The reports go to
+docs/measurements/explore-W-sS.json, a bird's-eye picture of each world's final map
+beside its truth to docs/exploration/W-sS.png (scripts/render_map_truth.py), and the table
+to docs/exploration.md. ``--table-only`` rewrites the table from the reports there.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import subprocess
+import sys
+import tempfile
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+MEASUREMENTS = ROOT / "docs" / "measurements"
+PICTURES = ROOT / "docs" / "exploration"
+FLOORNAV = ROOT / ".venv" / "bin" / "floornav"
+PYTHON = ROOT / ".venv" / "bin" / "python"
+
+
+def run_one(world: str, seed: int, duration_s: float) -> Path:
+    report = MEASUREMENTS / f"explore-{world}-s{seed}.json"
+    with tempfile.TemporaryDirectory() as tmp:
+        map_path = Path(tmp) / "map.npz"
+        command = [
+            str(FLOORNAV),
+            "run",
+            "--world",
+            world,
+            "--seed",
+            str(seed),
+            "--duration-s",
+            str(duration_s),
+            "--report",
+            str(report),
+            "--map",
+            str(map_path),
+        ]
+        print(" ".join(command), flush=True)
+        subprocess.run(command, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+        PICTURES.mkdir(parents=True, exist_ok=True)
+        subprocess.run(
+            [
+                str(PYTHON),
+                str(ROOT / "scripts" / "render_map_truth.py"),
+                str(map_path),
+                "--world",
+                world,
+                "--out",
+                str(PICTURES / f"{world}-s{seed}.png"),
+            ],
+            check=True,
+            cwd=ROOT,
+        )
+    return report
+
+
+def cell(value: object, digits: int = 3) -> str:
+    if value is None:
+        return "-"
+    if isinstance(value, float):
+        return f"{value:.{digits}f}"
+    return str(value)
+
+
+def table(command: str) -> str:
+    rows = [
+        "# Exploration, measured",
+        "",
+        "Written by `scripts/measure_exploration.py` from the run reports in",
+        "[measurements/](measurements/) (`explore-WORLD-sSEED.json`); the pictures in",
+        "[exploration/](exploration/) show each final map (right: free white, occupied",
+        "black, unknown grey) beside the world's truth (left), start green, end red.",
+        "",
+        f"Command: `{command}`",
+        "",
+        "| world | seed | s | reachable coverage | coverage | time to 50 % / 90 % s | "
+        "final state | home m | collisions | occupied near truth | map IoU | "
+        "pose error p95 m | latency p95 ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+    ]
+    for path in sorted(MEASUREMENTS.glob("explore-*.json")):
+        r = json.loads(path.read_text())
+        truth = r.get("map_truth") or {}
+        ttc = r.get("time_to_coverage_s") or {}
+        pose = r.get("pose_error_m") or {}
+        rows.append(
+            "| "
+            + " | ".join(
+                [
+                    cell(r.get("world")),
+                    cell(r.get("seed")),
+                    f"{r['duration_s']:.0f}",
+                    cell(r.get("coverage_reachable")),
+                    cell(r.get("coverage_ratio")),
+                    f"{cell(ttc.get('0.5'), 0)} / {cell(ttc.get('0.9'), 0)}",
+                    cell(r.get("final_state")),
+                    cell(r.get("home_distance_m"), 2),
+                    cell(r.get("collisions")),
+                    cell(truth.get("occupied_near_truth")),
+                    cell(truth.get("map_iou")),
+                    cell(pose.get("p95")),
+                    cell((r.get("latency_ms") or {}).get("p95"), 1),
+                ]
+            )
+            + " |"
+        )
+    return "\n".join(rows) + "\n"
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--duration-s", type=float, default=300.0)
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument("--worlds", nargs="+", default=["two-rooms", "home", "office"])
+    parser.add_argument("--table-only", action="store_true")
+    args = parser.parse_args()
+    MEASUREMENTS.mkdir(parents=True, exist_ok=True)
+    command = "scripts/measure_exploration.py " + " ".join(sys.argv[1:])
+    if not args.table_only:
+        for world in args.worlds:
+            for seed in args.seeds:
+                run_one(world, seed, args.duration_s)
+    (ROOT / "docs" / "exploration.md").write_text(table(command.strip()))
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
