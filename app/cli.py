@@ -34,8 +34,13 @@ def cmd_validate_config(args: argparse.Namespace) -> int:
 def cmd_run(args: argparse.Namespace) -> int:
     from app.daemon import run_daemon
 
-    # Validated before any device is touched: a bad key exits 2 naming it.
-    config = _load(args.config)
+    # Validated before any device is touched: a bad key (or world name) exits 2 naming it.
+    sim: dict[str, object] = {}
+    if args.world is not None:
+        sim["world_file"] = args.world
+    if args.seed is not None:
+        sim["seed"] = args.seed
+    config = load_config(args.config, sim=sim) if sim else _load(args.config)
     if args.duration_s is not None and not args.duration_s > 0:
         raise ValueError(f"--duration-s must be > 0, got {args.duration_s}")
     return run_daemon(
@@ -345,6 +350,18 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE",
         help="continue the map saved in FILE (if it exists) and save it there at exit, "
         "with a ROS map_server copy beside it (FILE.pgm, FILE.yaml)",
+    )
+    p.add_argument(
+        "--world",
+        metavar="NAME",
+        help="simulated world: a shipped one (two-rooms, home, office; default: two-rooms) "
+        "or the path of a world .toml file (sets [sim] world_file)",
+    )
+    p.add_argument(
+        "--seed",
+        type=int,
+        metavar="S",
+        help="seed of the simulator's random draws (sets [sim] seed, 0 by default)",
     )
     add_config(p)
     p.set_defaults(func=cmd_run)

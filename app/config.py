@@ -202,14 +202,33 @@ class SimConfig(StrictModel):
     """The simulated world (used when the camera or the Uno is simulated)."""
 
     world_file: str = ""
-    """Floor plan TOML (``app/sim/worlds/*.toml`` shows the format); empty: the shipped
-    default world."""
+    """The world: a shipped world's name (``two-rooms``, ``home``, ``office``; their files
+    are ``app/sim/worlds/NAME.toml``, which also show the format) or the path of a world
+    TOML file (ending in ``.toml`` or holding a ``/``); empty: the default world,
+    ``two-rooms`` (also called ``default``). ``floornav run --world`` sets it."""
+    seed: Annotated[int, Field(ge=0, le=2**31 - 1)] = 0
+    """Seed of the simulator's random draws (the simulated camera's sensor noise): a run
+    with the same world, seed and config renders the same frames. ``floornav run
+    --seed`` sets it; the run report reads it here."""
     camera_height_m: Annotated[float, Field(gt=0.02, le=2.0)] = 0.22
     camera_pitch_rad: Annotated[float, Field(ge=-0.2, le=1.4)] = 0.40
     """Downward tilt of the simulated camera."""
     focal_px: Annotated[float, Field(ge=50.0, le=5000.0)] = 500.0
     noise_sigma: Annotated[float, Field(ge=0.0, le=50.0)] = 2.0
     """Sensor noise of the simulated camera in 8-bit levels."""
+
+    @field_validator("world_file")
+    @classmethod
+    def _known_world(cls, value: str) -> str:
+        """A bare name must be a shipped world: a typo fails here, naming the worlds,
+        not when the daemon starts (paths are read then, as every path of the config)."""
+        from app.sim.worlds import UnknownWorldError, resolve_world_path
+
+        try:
+            resolve_world_path(value)
+        except UnknownWorldError as exc:
+            raise ValueError(str(exc)) from None
+        return value
 
 
 class SerialConfig(StrictModel):

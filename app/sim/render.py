@@ -6,15 +6,31 @@ its distance and its lighting are computed once. Per frame:
 
 1. the floor points are moved by the robot's pose into the plan frame and the world's
    floor texture is sampled there with ``cv2.remap`` (one mip level per band of rows,
-   chosen from the pixel's footprint on the floor, so far tiles do not alias);
+   chosen from the pixel's footprint on the floor, so far tiles do not alias); the
+   world's light areas are baked into the renderer's copy of that texture;
 2. a numba kernel rasterises every vertical face (walls on both sides, box sides) and
    every box top lower than the camera: each face's corners are clipped to the camera's
    near plane and projected to a bounding box, and every pixel in it intersects its ray
    with the face exactly, keeping the nearest hit (the floor's depth starts the depth
    buffer, so occlusion of and by the floor is exact);
 3. shading (ambient + diffuse of the face normal against the light direction, times
-   ``1 / (1 + (d / attenuation_distance_m)^2)`` of the distance ``d`` from the camera)
-   and Gaussian sensor noise (a pre-drawn pool read at a random offset per frame).
+   ``1 / (1 + (d / attenuation_distance_m)^2)`` of the distance ``d`` from the camera,
+   times the world's light areas' gain at the face's ground point: a dim hallway, a
+   patch of sun) and Gaussian sensor noise (a pre-drawn pool read at a random offset
+   per frame, seeded);
+4. on a glossy floor (worlds whose floor has ``gloss`` > 0 only), reflections: the faces
+   are rasterised a second time mirrored below the floor plane (z negated), at half
+   resolution (`_MirrorView`) for the rays that meet the floor, and each ceiling light
+   adds a blurred spot at its mirror image; a floor pixel blends its own colour with
+   that reflection by ``gloss`` times Schlick's Fresnel term of the viewing angle
+   (strong at grazing view, weak looking down), the ceiling (``background_color``)
+   where nothing is mirrored.
+
+Light areas (`World.light_gain`) are exact on the faces (from `World.light_area_table`,
+per pixel) and per texel on the floor; gloss is read from `World.gloss_raster` at
+``_GLOSS_CELL_M``. Every kernel runs on every frame whatever the world has (they return at
+once when it has no gloss), so rendering any world compiles all of them
+(`app.jit.compile_kernels` renders one frame).
 
 The ground truth is the floor mask of each frame (True where the floor is the nearest
 surface) and the world's occupancy raster (`World.occupancy`, computed once).
@@ -31,10 +47,28 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.mapping.frames import GroundGrid, Pose2D
-from app.sim.world import World
+from app.sim.world import FloorTexture, World
 
 _NEAR_M = 0.01
 """Faces are clipped to this distance in front of the camera before projection."""
+_GLOSS_CELL_M = 0.02
+"""Resolution of the gloss raster (read nearest: gloss changes only at floor areas' edges,
+and reflections are rendered at half resolution anyway)."""
+_FRESNEL_F0 = 0.15
+"""Schlick's reflectance looking straight down (a polished floor reflects little
+there, most at grazing view)."""
+_MIN_REFLECTION = 0.01
+"""Floor pixels whose reflection weight is below this skip the mirror pass."""
+_REFLECTION_SHIFT = 1
+_REFLECTION_STEP = 1 << _REFLECTION_SHIFT
+"""Reflections are rendered at 1 / this resolution and read back per block: a glossy
+floor blurs them anyway, and the mirror pass (mirrored walls reach far down the image)
+costs a quarter."""
+_SPOT_SIGMA = 0.6
+"""A light's spot is a Gaussian of this many of its disk's projected radii."""
+_PlanFrame = tuple[float, float, float, float, float, float, float]
+"""The gloss raster's x_max, y_max (the floor texture's too) and cell, then the robot
+pose's cos, sin, x and y in the plan frame: a tuple, so the kernels take it by value."""
 
 
 @dataclass(frozen=True)
@@ -150,6 +184,7 @@ class Renderer:
         self.camera = camera if camera is not None else CameraModel()
         cam = self.camera
         self.texture = world.floor_raster(texel_m)
+        self._floor_levels = _lit_levels(world, self.texture)
         self._rng = np.random.default_rng(seed)
         h, w = cam.height_px, cam.width_px
         rays = cam.rays_robot()
@@ -178,6 +213,35 @@ class Renderer:
         self._hit = np.empty((h, w), np.int32)
         self._face_rgb = np.empty((h, w, 3), np.float32)
         self._background = np.array(_bgr(light.background_color), np.float64)
+        # Gloss on a raster with the texture's corner (so one frame tuple serves both).
+        tex_grid = self.texture.grid
+        self._gloss_grid = GroundGrid.covering(
+            x_min_m=tex_grid.x_max_m - tex_grid.rows * tex_grid.cell_m,
+            x_max_m=tex_grid.x_max_m,
+            y_min_m=tex_grid.y_max_m - tex_grid.cols * tex_grid.cell_m,
+            y_max_m=tex_grid.y_max_m,
+            cell_m=_GLOSS_CELL_M,
+        )
+        self._gloss = np.ascontiguousarray(world.gloss_raster(self._gloss_grid), np.float32)
+        self._areas = np.ascontiguousarray(world.light_area_table, np.float64).reshape(-1, 8)
+        # Inverse softness: the kernels multiply (a hard edge ramps over a micrometre).
+        self._areas[:, 4] = 1.0 / np.maximum(self._areas[:, 4], 1e-6)
+        self._has_light = len(self._areas) > 0
+        self._has_gloss = world.max_gloss > 0.0
+        self._mirror = _MirrorView.of(cam, _REFLECTION_STEP)
+        lights = world.spec.lights
+        self._lights = np.array(
+            [
+                (
+                    *lamp.position_m,
+                    lamp.height_m,
+                    lamp.radius_m,
+                    *(lamp.intensity * v for v in _bgr(lamp.color)),
+                )
+                for lamp in lights
+            ],
+            np.float64,
+        ).reshape(len(lights), 7)
         pad = 64
         sigma = cam.noise_sigma
         self._noise = (
@@ -293,7 +357,7 @@ class Renderer:
                 map_x = (map_x + 0.5) * scale - 0.5
                 map_y = (map_y + 0.5) * scale - 0.5
             floor[start:end] = cv2.remap(
-                self.texture.levels[level],
+                self._floor_levels[level],
                 map_x,
                 map_y,
                 cv2.INTER_LINEAR,
@@ -312,14 +376,20 @@ class Renderer:
         mask = np.empty((h, w), np.bool_)
         noise_y = int(self._rng.integers(0, self._noise.shape[0] - h + 1))
         noise_x = int(self._rng.integers(0, self._noise.shape[1] - w + 1))
+        gg = self._gloss_grid
+        # All floats, whatever the pose was built from: one kernel signature.
+        frame = (gg.x_max_m, gg.y_max_m, gg.cell_m, cos_t, sin_t, float(pose.x_m), float(pose.y_m))
+        axes = self.camera.axes_robot()
+        cx, cy = cam.principal_point_px
         _render_faces(
             self._rays,
             self._ray_len,
             self._eye,
-            self.camera.axes_robot(),
+            axes,
             cam.fx_px,
             cam.fy_px,
-            *cam.principal_point_px,
+            cx,
+            cy,
             self._t_floor,
             segs_robot,
             f.height_m,
@@ -336,9 +406,60 @@ class Renderer:
             self.texture.levels[0],
             grid.cell_m,
             light.attenuation_distance_m,
+            self._areas,
+            frame,
+            self._has_light,
             self._zbuf,
             self._hit,
             self._face_rgb,
+        )
+        m = self._mirror
+        reflect = _render_mirror(
+            m.rays,
+            m.ray_len,
+            self._eye,
+            axes,
+            m.fx_px,
+            m.fy_px,
+            m.cx_px,
+            m.cy_px,
+            m.t_floor,
+            m.fresnel,
+            self._has_gloss,
+            segs_robot,
+            f.height_m,
+            f.color,
+            f.floor_like,
+            f.lit,
+            f.tex_origin,
+            f.length_m,
+            self.texture.levels[0],
+            grid.cell_m,
+            light.attenuation_distance_m,
+            self._gloss,
+            self._areas,
+            frame,
+            self._has_light,
+            self._background,
+            m.zbuf,
+            m.weight,
+            m.rgb,
+        )
+        lights = self._lights.copy()
+        if len(lights):
+            lights[:, :2] = T_robot_plan.apply(self._lights[:, :2])
+        _light_spots(
+            lights,
+            self._eye,
+            axes,
+            m.fx_px,
+            m.fy_px,
+            m.cx_px,
+            m.cy_px,
+            reflect,
+            m.zbuf,
+            m.weight,
+            m.rgb,
         )
         _compose(
             floor,
@@ -348,6 +469,10 @@ class Renderer:
             self._face_rgb,
             self._background,
             self._noise[noise_y : noise_y + h, noise_x : noise_x + w],
+            reflect,
+            _REFLECTION_SHIFT,
+            m.weight,
+            m.rgb,
             image,
             mask,
         )
@@ -368,6 +493,70 @@ class _FaceTables:
     box_yaw: NDArray[np.float64]
     box_height: NDArray[np.float64]
     box_color: NDArray[np.float64]
+
+
+@dataclass(frozen=True)
+class _MirrorView:
+    """The camera at 1 / ``step`` resolution, for the mirror pass: one ray per block of
+    ``step`` x ``step`` pixels (through its centre), the intrinsics that project onto
+    the blocks, each ray's floor hit and Fresnel term, and the pass's work buffers."""
+
+    rays: NDArray[np.float64]
+    ray_len: NDArray[np.float64]
+    t_floor: NDArray[np.float64]
+    fresnel: NDArray[np.float32]
+    """Schlick's term of the ray's angle to the floor's normal; 0 for rays that miss it."""
+    fx_px: float
+    fy_px: float
+    cx_px: float
+    cy_px: float
+    zbuf: NDArray[np.float64]
+    weight: NDArray[np.float32]
+    rgb: NDArray[np.float32]
+
+    @classmethod
+    def of(cls, cam: CameraModel, step: int) -> _MirrorView:
+        h, w = math.ceil(cam.height_px / step), math.ceil(cam.width_px / step)
+        cx, cy = cam.principal_point_px
+        centre = (step - 1) / 2
+        u = (np.arange(w) * step + centre - cx) / cam.fx_px
+        v = (np.arange(h) * step + centre - cy) / cam.fy_px
+        uu, vv = np.meshgrid(u, v)
+        right, down_axis, forward = cam.axes_robot()
+        rays = uu[..., None] * right + vv[..., None] * down_axis + forward[None, None, :]
+        ray_len = np.linalg.norm(rays, axis=2)
+        down = -rays[..., 2]
+        hits = down > 1e-9
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_floor = np.where(hits, cam.height_m / down, np.inf)
+        cos_view = np.clip(np.where(hits, down / ray_len, 1.0), 0.0, 1.0)
+        fresnel = _FRESNEL_F0 + (1.0 - _FRESNEL_F0) * (1.0 - cos_view) ** 5
+        return cls(
+            rays=np.ascontiguousarray(rays, np.float64),
+            ray_len=np.ascontiguousarray(ray_len, np.float64),
+            t_floor=np.ascontiguousarray(t_floor, np.float64),
+            fresnel=np.where(hits, fresnel, 0.0).astype(np.float32),
+            fx_px=cam.fx_px / step,
+            fy_px=cam.fy_px / step,
+            cx_px=(cx - centre) / step,
+            cy_px=(cy - centre) / step,
+            zbuf=np.empty((h, w), np.float64),
+            weight=np.empty((h, w), np.float32),
+            rgb=np.empty((h, w, 3), np.float32),
+        )
+
+
+def _lit_levels(world: World, texture: FloorTexture) -> list[NDArray[np.uint8]]:
+    """The floor texture's mip levels with the world's light areas applied (the
+    texture itself when it has none): the floor then costs nothing more per frame."""
+    if not world.spec.light_areas:
+        return texture.levels
+    x, y = texture.grid.cell_centers()
+    lit = texture.levels[0] * world.light_gain(x, y)
+    levels = [np.clip(lit + 0.5, 0, 255).astype(np.uint8)]
+    while len(levels) < len(texture.levels):
+        levels.append(np.asarray(cv2.pyrDown(levels[-1]), np.uint8))
+    return levels
 
 
 def _bgr(color: str) -> tuple[float, float, float]:
@@ -468,6 +657,15 @@ def _project_bbox(
 
 
 @numba.njit(cache=True, nogil=True)
+def _plan_point(frame: _PlanFrame, rx: float, ry: float) -> tuple[float, float]:
+    """A robot-frame ground point in the plan frame."""
+    return (
+        frame[5] + frame[3] * rx - frame[4] * ry,
+        frame[6] + frame[4] * rx + frame[3] * ry,
+    )
+
+
+@numba.njit(cache=True, nogil=True)
 def _render_faces(
     rays: NDArray[np.float64],
     ray_len: NDArray[np.float64],
@@ -493,13 +691,17 @@ def _render_faces(
     texture: NDArray[np.uint8],
     texel: float,
     att_m: float,
+    areas: NDArray[np.float64],
+    frame: _PlanFrame,
+    has_light: bool,
     zbuf: NDArray[np.float64],
     hit: NDArray[np.int32],
     face_rgb: NDArray[np.float32],
 ) -> None:
     """Depth-tested rasterisation of vertical faces and box tops (robot frame).
     ``hit`` is -1 where the floor (or nothing) is nearest, else 1; ``face_rgb`` then
-    holds the shaded colour."""
+    holds the shaded colour, times the light areas' gain at the hit's ground point
+    when ``has_light`` (applied once per pixel, after the nearest face is known)."""
     h, w = t_floor.shape
     ex, ey, ez = eye[0], eye[1], eye[2]
     tex_h, tex_w = texture.shape[0], texture.shape[1]
@@ -586,6 +788,227 @@ def _render_faces(
                 gain = 1.0 / (1.0 + (d / att_m) ** 2)
                 for k in range(3):
                     face_rgb[r, c, k] = box_color[b, k] * gain
+    if has_light:
+        for r in range(h):
+            for c in range(w):
+                if hit[r, c] < 0:
+                    zbuf[r, c] = np.inf
+        _apply_light_areas(rays, eye, zbuf, areas, frame, face_rgb)
+
+
+@numba.njit(cache=True, nogil=True)
+def _render_mirror(
+    rays: NDArray[np.float64],
+    ray_len: NDArray[np.float64],
+    eye: NDArray[np.float64],
+    axes: NDArray[np.float64],
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    t_floor: NDArray[np.float64],
+    fresnel: NDArray[np.float32],
+    has_gloss: bool,
+    segs: NDArray[np.float64],
+    heights: NDArray[np.float64],
+    colors: NDArray[np.float64],
+    floor_like: NDArray[np.bool_],
+    lit: NDArray[np.float64],
+    tex_origin: NDArray[np.float64],
+    length_m: NDArray[np.float64],
+    texture: NDArray[np.uint8],
+    texel: float,
+    att_m: float,
+    gloss: NDArray[np.float32],
+    areas: NDArray[np.float64],
+    frame: _PlanFrame,
+    has_light: bool,
+    ceiling: NDArray[np.float64],
+    rzbuf: NDArray[np.float64],
+    refl_w: NDArray[np.float32],
+    refl_rgb: NDArray[np.float32],
+) -> bool:
+    """The floor's reflections, on the `_MirrorView` rays: per ray that meets the floor
+    its reflection weight (``refl_w``: the floor's gloss there times the Fresnel term)
+    and, where that is worth it, the colour its mirrored ray meets (``refl_rgb``, the
+    ceiling by default) at depth ``rzbuf``. The faces are mirrored to z in [-height, 0]:
+    a ray past its floor point meets them exactly where its reflection meets the
+    originals, after the same path length. Box tops are left out (the mirrored camera
+    sees them from below, where they are hidden). Every ray that meets the floor gets
+    a reflection, also where something stands in front of its floor point: the other
+    pixels of its block may see floor. False when no ray reflects."""
+    if not has_gloss:
+        return False
+    h, w = t_floor.shape
+    ex, ey, ez = eye[0], eye[1], eye[2]
+    g_rows, g_cols = gloss.shape
+    inv_cell = 1.0 / frame[2]
+    reflects = False
+    for r in range(h):
+        for c in range(w):
+            weight = 0.0
+            if fresnel[r, c] > 0.0:
+                t = t_floor[r, c]
+                px, py = _plan_point(frame, ex + t * rays[r, c, 0], ey + t * rays[r, c, 1])
+                gr = math.floor((frame[0] - px) * inv_cell)
+                gc = math.floor((frame[1] - py) * inv_cell)
+                if 0 <= gr < g_rows and 0 <= gc < g_cols:
+                    weight = gloss[gr, gc] * fresnel[r, c]
+            if weight >= _MIN_REFLECTION:
+                reflects = True
+                refl_w[r, c] = weight
+                rzbuf[r, c] = np.inf
+                for k in range(3):
+                    refl_rgb[r, c, k] = ceiling[k]
+            else:
+                refl_w[r, c] = 0.0
+                rzbuf[r, c] = -1.0
+    if not reflects:
+        return False
+    ex, ey, ez = eye[0], eye[1], eye[2]
+    tex_h, tex_w = texture.shape[0], texture.shape[1]
+    quad = np.empty((4, 3))
+    for f in range(segs.shape[0]):
+        ax, ay, bx, by = segs[f, 0], segs[f, 1], segs[f, 2], segs[f, 3]
+        top = heights[f]
+        quad[0, 0], quad[0, 1], quad[0, 2] = ax, ay, 0.0
+        quad[1, 0], quad[1, 1], quad[1, 2] = bx, by, 0.0
+        quad[2, 0], quad[2, 1], quad[2, 2] = bx, by, -top
+        quad[3, 0], quad[3, 1], quad[3, 2] = ax, ay, -top
+        c0, c1, r0, r1 = _project_bbox(quad, eye, axes, fx, fy, cx, cy, w, h)
+        if c0 >= c1:
+            continue
+        edx, edy = bx - ax, by - ay
+        wx, wy = ax - ex, ay - ey
+        left = edx * (ey - ay) - edy * (ex - ax) > 0.0
+        shade = lit[f, 0] if left else lit[f, 1]
+        for r in range(r0, r1):
+            for c in range(c0, c1):
+                if rzbuf[r, c] < 0.0:
+                    continue
+                dx, dy, dz = rays[r, c, 0], rays[r, c, 1], rays[r, c, 2]
+                denom = dx * edy - dy * edx
+                if abs(denom) < 1e-12:
+                    continue
+                t = (wx * edy - wy * edx) / denom
+                if t <= 0.0 or t >= rzbuf[r, c]:
+                    continue
+                s = (wx * dy - wy * dx) / denom
+                if s < 0.0 or s > 1.0:
+                    continue
+                z = ez + t * dz
+                if z > 0.0 or z < -top:
+                    continue
+                rzbuf[r, c] = t
+                d = t * ray_len[r, c]
+                gain = shade / (1.0 + (d / att_m) ** 2)
+                if floor_like[f]:
+                    along = s * length_m[f]
+                    tr = int(tex_origin[f, 0] - along / texel) % tex_h
+                    tc = int(tex_origin[f, 1] + z / texel) % tex_w
+                    for k in range(3):
+                        refl_rgb[r, c, k] = texture[tr, tc, k] * gain
+                else:
+                    for k in range(3):
+                        refl_rgb[r, c, k] = colors[f, k] * gain
+    if has_light:
+        _apply_light_areas(rays, eye, rzbuf, areas, frame, refl_rgb)
+    return True
+
+
+@numba.njit(cache=True, nogil=True)
+def _apply_light_areas(
+    rays: NDArray[np.float64],
+    eye: NDArray[np.float64],
+    depth: NDArray[np.float64],
+    areas: NDArray[np.float64],
+    frame: _PlanFrame,
+    rgb: NDArray[np.float32],
+) -> None:
+    """Multiply ``rgb`` by the light areas' gain (`World.light_gain`) at each ray's
+    ground point, where its ``depth`` (ray parameter of what it meets) is positive and
+    finite. ``areas``: `World.light_area_table` with the softness inverted."""
+    h, w = depth.shape
+    ex, ey = eye[0], eye[1]
+    for r in range(h):
+        for c in range(w):
+            t = depth[r, c]
+            if not 0.0 < t < np.inf:
+                continue
+            px, py = _plan_point(frame, ex + t * rays[r, c, 0], ey + t * rays[r, c, 1])
+            for a in range(areas.shape[0]):
+                inv = areas[a, 4]
+                cx0 = min(1.0, max(0.0, (px - areas[a, 0]) * inv + 0.5))
+                cx1 = min(1.0, max(0.0, (areas[a, 2] - px) * inv + 0.5))
+                cy0 = min(1.0, max(0.0, (py - areas[a, 1]) * inv + 0.5))
+                cy1 = min(1.0, max(0.0, (areas[a, 3] - py) * inv + 0.5))
+                cover = cx0 * cx1 * cy0 * cy1
+                if cover > 0.0:
+                    rgb[r, c, 0] *= 1.0 + cover * (areas[a, 5] - 1.0)
+                    rgb[r, c, 1] *= 1.0 + cover * (areas[a, 6] - 1.0)
+                    rgb[r, c, 2] *= 1.0 + cover * (areas[a, 7] - 1.0)
+
+
+@numba.njit(cache=True, nogil=True)
+def _light_spots(
+    lights: NDArray[np.float64],
+    eye: NDArray[np.float64],
+    axes: NDArray[np.float64],
+    fx: float,
+    fy: float,
+    cx: float,
+    cy: float,
+    reflect: bool,
+    rzbuf: NDArray[np.float64],
+    refl_w: NDArray[np.float32],
+    refl_rgb: NDArray[np.float32],
+) -> None:
+    """Add each ceiling light's mirror image (``lights`` rows: robot-frame x, y, height,
+    radius, then B, G, R brightness) to the reflection as a Gaussian spot as wide as the
+    light's disk looks from here, where no mirrored face is nearer."""
+    if not reflect:
+        return
+    h, w = rzbuf.shape
+    rim = np.empty((5, 3))
+    for i in range(lights.shape[0]):
+        lx, ly, lz, radius = lights[i, 0], lights[i, 1], -lights[i, 2], lights[i, 3]
+        for j in range(5):
+            ox = radius if j == 1 else (-radius if j == 2 else 0.0)
+            oy = radius if j == 3 else (-radius if j == 4 else 0.0)
+            for a in range(3):
+                rim[j, a] = (
+                    (lx + ox - eye[0]) * axes[a, 0]
+                    + (ly + oy - eye[1]) * axes[a, 1]
+                    + (lz - eye[2]) * axes[a, 2]
+                )
+        depth = rim[0, 2]
+        if depth < _NEAR_M:
+            continue
+        u = cx + fx * rim[0, 0] / depth
+        v = cy + fy * rim[0, 1] / depth
+        su, sv = 0.0, 0.0
+        for j in range(1, 5):
+            if rim[j, 2] < _NEAR_M:
+                continue
+            su = max(su, abs(cx + fx * rim[j, 0] / rim[j, 2] - u))
+            sv = max(sv, abs(cy + fy * rim[j, 1] / rim[j, 2] - v))
+        su = max(1.0, _SPOT_SIGMA * su)
+        sv = max(1.0, _SPOT_SIGMA * sv)
+        # Out to 2.5 sigma (the rest is below 5 % of the peak).
+        c0, c1 = max(0, int(u - 2.5 * su)), min(w, int(u + 2.5 * su) + 2)
+        r0, r1 = max(0, int(v - 2.5 * sv)), min(h, int(v + 2.5 * sv) + 2)
+        for r in range(r0, r1):
+            dv = (r - v) / sv
+            for c in range(c0, c1):
+                if refl_w[r, c] <= 0.0 or rzbuf[r, c] < depth:
+                    continue
+                du = (c - u) / su
+                q = du * du + dv * dv
+                if q > 6.25:
+                    continue
+                g = math.exp(-0.5 * q)
+                for k in range(3):
+                    refl_rgb[r, c, k] += lights[i, 4 + k] * g
 
 
 @numba.njit(cache=True, nogil=True)
@@ -597,21 +1020,35 @@ def _compose(
     face_rgb: NDArray[np.float32],
     background: NDArray[np.float64],
     noise: NDArray[np.int16],
+    reflect: bool,
+    refl_shift: int,
+    refl_w: NDArray[np.float32],
+    refl_rgb: NDArray[np.float32],
     image: NDArray[np.uint8],
     mask: NDArray[np.bool_],
 ) -> None:
-    """Shaded floor, faces or background per pixel, plus noise; the floor mask."""
+    """Shaded floor (blended with its reflection), faces or background per pixel, plus
+    noise; the floor mask."""
     h, w = hit.shape
     for r in range(h):
         for c in range(w):
             is_floor = hit[r, c] < 0 and np.isfinite(t_floor[r, c])
             mask[r, c] = is_floor
-            for k in range(3):
-                if hit[r, c] >= 0:
-                    value = face_rgb[r, c, k]
-                elif is_floor:
-                    value = floor[r, c, k] * floor_shade[r, c]
-                else:
-                    value = background[k]
-                value += noise[r, c, k]
-                image[r, c, k] = min(255, max(0, int(value + 0.5)))
+            if hit[r, c] >= 0:
+                v0, v1, v2 = face_rgb[r, c, 0], face_rgb[r, c, 1], face_rgb[r, c, 2]
+            elif is_floor:
+                shade = floor_shade[r, c]
+                v0, v1, v2 = floor[r, c, 0] * shade, floor[r, c, 1] * shade, floor[r, c, 2] * shade
+                if reflect:
+                    rr, rc = r >> refl_shift, c >> refl_shift
+                    wr = refl_w[rr, rc]
+                    if wr > 0.0:
+                        keep = 1.0 - wr
+                        v0 = v0 * keep + wr * refl_rgb[rr, rc, 0]
+                        v1 = v1 * keep + wr * refl_rgb[rr, rc, 1]
+                        v2 = v2 * keep + wr * refl_rgb[rr, rc, 2]
+            else:
+                v0, v1, v2 = background[0], background[1], background[2]
+            image[r, c, 0] = min(255, max(0, int(v0 + noise[r, c, 0] + 0.5)))
+            image[r, c, 1] = min(255, max(0, int(v1 + noise[r, c, 1] + 0.5)))
+            image[r, c, 2] = min(255, max(0, int(v2 + noise[r, c, 2] + 0.5)))

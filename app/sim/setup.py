@@ -3,15 +3,13 @@ calibration (exact: its geometry is known)."""
 
 from __future__ import annotations
 
-from pathlib import Path
-
 import numpy as np
 from numpy.typing import NDArray
 
 from app.config import FloornavConfig
 from app.mapping.calibration import FloorCalibration, homography_from_point_pairs
 from app.sim.render import CameraModel, Renderer
-from app.sim.world import World, load_world
+from app.sim.world import World, load_named_world
 
 
 def camera_model(config: FloornavConfig) -> CameraModel:
@@ -29,11 +27,13 @@ def camera_model(config: FloornavConfig) -> CameraModel:
 
 
 def world_from_config(config: FloornavConfig) -> World:
-    return load_world(Path(config.sim.world_file) if config.sim.world_file else None)
+    """The world ``[sim] world_file`` names (a shipped world's name or a path)."""
+    return load_named_world(config.sim.world_file)
 
 
 def renderer_from_config(config: FloornavConfig) -> Renderer:
-    return Renderer(world_from_config(config), camera_model(config))
+    """The simulated camera, its sensor noise seeded by ``[sim] seed``."""
+    return Renderer(world_from_config(config), camera_model(config), seed=config.sim.seed)
 
 
 def project_floor_points(model: CameraModel, points_m: NDArray[np.floating]) -> NDArray[np.float64]:

@@ -1,5 +1,7 @@
 """The simulated floor plan: walls, boxes, textured floors, lighting and a start pose,
-read from a small TOML file (``app/sim/worlds/default.toml`` is the shipped one).
+read from a small TOML file. The shipped worlds are ``app/sim/worlds/NAME.toml``, chosen
+by name (`resolve_world_path`): ``two-rooms`` (the default, also called ``default``),
+``home`` and ``office``.
 
 Coordinates
 -----------
@@ -17,9 +19,20 @@ File format (every key optional unless said; unknown keys are errors)::
     [floor]                     # default floor everywhere
     pattern = "wood"            # plain | tiles | wood | carpet (+ its own keys)
     color = "#a87c50"
-    [[floor_areas]]             # a rug, another room's tiles ...
+    gloss = 0.0                 # 0 matte .. 1 mirror-like (reflects walls, boxes, lights)
+    [[floor_areas]]             # a rug, another room's tiles ... (later areas on top)
     rect_m = [x_min, y_min, x_max, y_max]
     surface = { pattern = "carpet", color = "#7a3b3b" }
+    end_color = "#3b4a7a"       # optional: the colour fades to this along fade_axis
+    fade_axis = "x"
+    [[light_areas]]             # a dark hallway (gain < 1), a sunlit patch (gain > 1)
+    rect_m = [x_min, y_min, x_max, y_max]
+    gain = 0.45
+    color = "#ffffff"           # tint (a warm sun: "#fff0d0")
+    softness_m = 0.1            # width of the soft edge
+    [[lights]]                  # ceiling lights, seen as reflections in a glossy floor
+    position_m = [3.0, 2.0]
+    height_m = 2.6
     [[rooms]]                   # a closed rectangle of walls
     rect_m = [0.0, 0.0, 8.0, 6.0]
     [[walls]]                   # an open polyline of walls
@@ -55,8 +68,8 @@ from pydantic import AfterValidator, Field, ValidationError
 
 from app.config import StrictModel
 from app.mapping.frames import GroundGrid, Pose2D
+from app.sim.worlds import DEFAULT_WORLD_PATH, resolve_world_path
 
-DEFAULT_WORLD_PATH = Path(__file__).resolve().parent / "worlds" / "default.toml"
 DEFAULT_ROBOT_RADIUS_M = 0.15
 """Radius of the circle the simulated robot occupies (a 0.2 m wheel base plus bumpers)."""
 
@@ -74,6 +87,10 @@ PositiveLength = Annotated[float, Field(gt=0.0, le=1000.0)]
 Coordinate = Annotated[float, Field(ge=-1000.0, le=1000.0)]
 Point = tuple[Coordinate, Coordinate]
 Variation = Annotated[float, Field(ge=0.0, le=0.5)]
+Gloss = Annotated[float, Field(ge=0.0, le=1.0)]
+"""How mirror-like a floor is: the weight of its reflection at grazing view (Schlick's
+Fresnel falloff makes it weaker looking down); 0 is matte."""
+Rect = tuple[Coordinate, Coordinate, Coordinate, Coordinate]
 
 
 # -- floors ----------------------------------------------------------------------------
@@ -86,6 +103,7 @@ class PlainFloor(StrictModel):
     color: Color = "#9a8f80"
     variation: Variation = 0.03
     seed: int = 0
+    gloss: Gloss = 0.0
 
 
 class TilesFloor(StrictModel):
@@ -98,6 +116,7 @@ class TilesFloor(StrictModel):
     joint_width_m: Annotated[float, Field(ge=0.0, le=0.05)] = 0.006
     variation: Variation = 0.06
     seed: int = 0
+    gloss: Gloss = 0.0
 
 
 class WoodFloor(StrictModel):
@@ -112,6 +131,7 @@ class WoodFloor(StrictModel):
     grain: Variation = 0.08
     variation: Variation = 0.10
     seed: int = 0
+    gloss: Gloss = 0.0
 
 
 class CarpetFloor(StrictModel):
@@ -124,6 +144,7 @@ class CarpetFloor(StrictModel):
     fleck_fraction: Annotated[float, Field(ge=0.0, le=0.5)] = 0.04
     variation: Variation = 0.12
     seed: int = 0
+    gloss: Gloss = 0.0
 
 
 FloorSurface = Annotated[
@@ -133,10 +154,39 @@ _PATTERN_NAMES = frozenset({"plain", "tiles", "wood", "carpet"})
 
 
 class FloorArea(StrictModel):
-    """A rectangle of floor with its own surface (a rug, a tiled room)."""
+    """A rectangle of floor with its own surface (a rug, a tiled room, a threshold strip).
 
-    rect_m: tuple[Coordinate, Coordinate, Coordinate, Coordinate]
+    With ``end_color`` the surface's colour fades linearly along ``fade_axis``, from
+    ``surface.color`` at the rectangle's low edge to ``end_color`` at its high edge (a
+    rug whose two ends differ: one region whose colour statistics drift)."""
+
+    rect_m: Rect
     surface: FloorSurface
+    end_color: Color | None = None
+    fade_axis: Literal["x", "y"] = "x"
+
+
+class LightArea(StrictModel):
+    """A rectangle of the plan lit differently: floor and faces whose ground point lies in
+    it have their brightness multiplied by ``gain`` (tinted by ``color``, white = none),
+    fading in over ``softness_m`` at its edges. A dim hallway, a patch of sun."""
+
+    rect_m: Rect
+    gain: Annotated[float, Field(ge=0.05, le=4.0)]
+    color: Color = "#ffffff"
+    softness_m: Annotated[float, Field(ge=0.0, le=2.0)] = 0.1
+
+
+class CeilingLight(StrictModel):
+    """A round ceiling light: it shows as a bright blurred spot where a glossy floor
+    mirrors it (it lights nothing itself: `LightingSpec` does)."""
+
+    position_m: Point
+    height_m: Annotated[float, Field(gt=0.0, le=20.0)] = 2.6
+    radius_m: Annotated[float, Field(gt=0.0, le=2.0)] = 0.25
+    intensity: Annotated[float, Field(ge=0.0, le=10.0)] = 2.5
+    """Spot brightness in units of full scale (255) before the floor's gloss weight."""
+    color: Color = "#fff8ec"
 
 
 # -- walls and boxes -------------------------------------------------------------------
@@ -158,7 +208,7 @@ class WallSpec(StrictModel):
 class RoomSpec(StrictModel):
     """A closed rectangle of walls ``[x_min, y_min, x_max, y_max]``."""
 
-    rect_m: tuple[Coordinate, Coordinate, Coordinate, Coordinate]
+    rect_m: Rect
     height_m: PositiveLength = 1.0
     color: Color = "#d8d4cc"
     finish: WallFinish = "paint"
@@ -205,6 +255,8 @@ class WorldSpec(StrictModel):
     walls: list[WallSpec] = Field(default_factory=list)
     boxes: list[BoxSpec] = Field(default_factory=list)
     lighting: LightingSpec = LightingSpec()
+    light_areas: list[LightArea] = Field(default_factory=list)
+    lights: list[CeilingLight] = Field(default_factory=list)
 
 
 # -- errors ----------------------------------------------------------------------------
@@ -315,6 +367,12 @@ def load_world(
     return parse_world(text, source=str(path), robot_radius_m=robot_radius_m)
 
 
+def load_named_world(selector: str, *, robot_radius_m: float = DEFAULT_ROBOT_RADIUS_M) -> World:
+    """`load_world` of `resolve_world_path` (what ``[sim] world_file`` and ``floornav run
+    --world`` hold)."""
+    return load_world(resolve_world_path(selector), robot_radius_m=robot_radius_m)
+
+
 def parse_world(
     text: str, *, source: str = "<string>", robot_radius_m: float = DEFAULT_ROBOT_RADIUS_M
 ) -> World:
@@ -364,6 +422,7 @@ def check_world(spec: WorldSpec, *, robot_radius_m: float) -> list[tuple[Loc, st
                 )
     rects = [("rooms", i, r.rect_m) for i, r in enumerate(spec.rooms)]
     rects += [("floor_areas", i, a.rect_m) for i, a in enumerate(spec.floor_areas)]
+    rects += [("light_areas", i, a.rect_m) for i, a in enumerate(spec.light_areas)]
     for name, i, rect in rects:
         x_min, y_min, x_max, y_max = rect
         if not (x_max - x_min > 1e-3 and y_max - y_min > 1e-3):
@@ -566,6 +625,32 @@ def floor_texture(
     return out
 
 
+def _area_texture(
+    area: FloorArea, x_m: NDArray[np.floating], y_m: NDArray[np.floating], *, texel_m: float
+) -> NDArray[np.uint8]:
+    """`floor_texture` of a floor area, faded towards ``end_color`` along its axis (the
+    same pattern in both colours, blended, so only the colour drifts)."""
+    near = floor_texture(area.surface, x_m, y_m, texel_m=texel_m)
+    if area.end_color is None:
+        return near
+    far = floor_texture(
+        area.surface.model_copy(update={"color": area.end_color}), x_m, y_m, texel_m=texel_m
+    )
+    x0, y0, x1, y1 = area.rect_m
+    along, low, high = (x_m, x0, x1) if area.fade_axis == "x" else (y_m, y0, y1)
+    t = np.clip((np.asarray(along, np.float32) - low) / (high - low), 0.0, 1.0)[..., None]
+    out: NDArray[np.uint8] = (near * (1.0 - t) + far * t + 0.5).astype(np.uint8)
+    return out
+
+
+def _soft_step(distance_inside_m: NDArray[np.float64], softness_m: float) -> NDArray[np.float64]:
+    """0 outside an edge, 1 inside, a linear ramp ``softness_m`` wide centred on it."""
+    if softness_m <= 0.0:
+        return (distance_inside_m >= 0.0).astype(np.float64)
+    out: NDArray[np.float64] = np.clip(distance_inside_m / softness_m + 0.5, 0.0, 1.0)
+    return out
+
+
 # -- the world -------------------------------------------------------------------------
 
 
@@ -749,13 +834,53 @@ class World:
             cols = np.flatnonzero((y[0, :] >= ay0) & (y[0, :] < ay1))
             if len(rows) and len(cols):
                 sub = np.ix_(rows, cols)
-                image[sub] = floor_texture(area.surface, x[sub], y[sub], texel_m=texel_m)
+                image[sub] = _area_texture(area, x[sub], y[sub], texel_m=texel_m)
         levels = [image]
         while min(levels[-1].shape[:2]) > 16 and len(levels) < 10:
             levels.append(np.asarray(cv2.pyrDown(levels[-1]), np.uint8))
         texture = FloorTexture(grid, levels)
         self._texture_cache[texel_m] = texture
         return texture
+
+    @cached_property
+    def max_gloss(self) -> float:
+        """The glossiest floor surface's gloss (0: the renderer skips reflections)."""
+        return max([self.spec.floor.gloss] + [a.surface.gloss for a in self.spec.floor_areas])
+
+    @cached_property
+    def light_area_table(self) -> NDArray[np.float64]:
+        """(L, 8) per light area: x_min, y_min, x_max, y_max, softness_m and the B, G, R
+        gain (``gain`` times the tint): what the renderer's kernels evaluate."""
+        rows = [
+            (*a.rect_m, a.softness_m, *(a.gain * v / 255.0 for v in _hex_to_bgr(a.color)))
+            for a in self.spec.light_areas
+        ]
+        return np.array(rows, np.float64).reshape(len(rows), 8)
+
+    def light_gain(
+        self, x_m: NDArray[np.floating], y_m: NDArray[np.floating]
+    ) -> NDArray[np.float64]:
+        """(..., 3) BGR brightness gain of the light areas at plan points: 1 outside
+        every area, each area's gain inside it, ramping over ``softness_m`` centred on
+        its edges; overlapping areas multiply."""
+        x = np.asarray(x_m, np.float64)
+        y = np.asarray(y_m, np.float64)
+        out = np.ones((*x.shape, 3), np.float64)
+        for x0, y0, x1, y1, soft, *gain in self.light_area_table:
+            cover = _soft_step(x - x0, soft) * _soft_step(x1 - x, soft)
+            cover *= _soft_step(y - y0, soft) * _soft_step(y1 - y, soft)
+            out *= 1.0 + cover[..., None] * (np.array(gain) - 1.0)
+        return out
+
+    def gloss_raster(self, grid: GroundGrid) -> NDArray[np.float32]:
+        """The floor's gloss at the centres of ``grid``'s cells, the floor areas laid as
+        `floor_raster` lays their textures (later areas on top)."""
+        x, y = grid.cell_centers()
+        gloss = np.full(grid.shape, self.spec.floor.gloss, np.float32)
+        for area in self.spec.floor_areas:
+            ax0, ay0, ax1, ay1 = area.rect_m
+            gloss[(x >= ax0) & (x < ax1) & (y >= ay0) & (y < ay1)] = area.surface.gloss
+        return gloss
 
     def occupancy(
         self, cell_m: float = 0.05, *, margin_m: float = 0.5
