@@ -4,6 +4,7 @@ published messages and counters; nothing here changes the run."""
 
 from __future__ import annotations
 
+import math
 import os
 import statistics
 from typing import TYPE_CHECKING, Any
@@ -110,7 +111,7 @@ def status(rt: Runtime) -> dict[str, Any]:
 def report(rt: Runtime) -> dict[str, Any]:
     """The run report ``floornav run --report`` writes (sim-only fields null on
     hardware)."""
-    from app.sim.truth import map_truth_scores
+    from app.sim.truth import coverage_reachable, map_truth_scores
 
     shared = rt.shared
     counters = shared.counters
@@ -118,10 +119,23 @@ def report(rt: Runtime) -> dict[str, Any]:
     sim = rt.devices.sim
     mapper = shared.mapper
     truth: dict[str, float] | None = None
+    reachable: float | None = None
     if sim is not None and mapper is not None and rt.devices.camera is sim.camera:
+        classes = mapper.grid.classify()
         truth = map_truth_scores(
-            mapper.grid.classify(), mapper.grid.world_grid, sim.T_plan_odom, sim.world
+            classes, mapper.grid.world_grid, sim.T_plan_odom, sim.world
         ).as_dict()
+        reachable = round(
+            coverage_reachable(
+                classes,
+                mapper.grid.world_grid,
+                sim.T_plan_odom,
+                sim.world,
+                shared.config.mapping.robot_radius_m,
+            ),
+            4,
+        )
+    pose = shared.odometry.pose
     link = shared.link
     policy = shared.policy
     now = rt.clock()
@@ -139,9 +153,22 @@ def report(rt: Runtime) -> dict[str, Any]:
         "loop_lag_ms": rt.loop_lag.summary_ms(),
         "collisions": sim.robot.collisions if sim is not None else None,
         "coverage_ratio": truth["coverage_ratio"] if truth else None,
+        "coverage_reachable": reachable,
         "map_iou": truth["map_iou"] if truth else None,
         "map_truth": truth,
         "distance_m": round(shared.odometry.distance_m, 3),
+        "home_distance_m": round(math.hypot(pose.x_m, pose.y_m), 3),
+        "world": sim.world.name if sim is not None else None,
+        "seed": shared.config.sim.seed if sim is not None else None,
+        "floor_memory": None
+        if mapper is None
+        else {
+            "confirmed_m2": round(
+                float(mapper.memory.confirmed.sum()) * mapper.grid.world_grid.cell_m**2, 2
+            ),
+            "appearances": len(mapper.memory.appearances()),
+            "unlearned": mapper.memory.unlearned,
+        },
         "estops": shared.mux.estops,
         "faults": counters.faults,
         "fault_latched": policy.latched.as_dict(now) if policy.latched else None,
