@@ -26,6 +26,7 @@ from app.config import FloornavConfig
 
 if TYPE_CHECKING:
     from app.mapping.calibration import FloorCalibration
+    from app.mapping.ground_map import GroundMapper
 
 KERNEL_MODULES = (
     "app.perception.slic",
@@ -185,6 +186,35 @@ def _run_daemon_paths(config: FloornavConfig) -> None:
         if moved and (mapper.parallax is None or mapper.parallax_frames > 0):
             break
     mapper.frontiers(pose, given_up_xy=[])
+    if mapper.parallax is not None:
+        _run_parallax_test(mapper, floor_mask, image)
+
+
+def _run_parallax_test(
+    mapper: GroundMapper, floor_mask: NDArray[np.bool_], image: NDArray[np.uint8]
+) -> None:
+    """The parallax test once more, directly, asking for what stands up too: its kernels
+    then run whatever the mapper's choice of views made of the frames above (a second
+    view straight ahead always gives it parallax to test)."""
+    import cv2
+
+    from app.perception.planar import confirm_floor
+
+    assert mapper.parallax is not None
+    gray = np.asarray(
+        cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image, np.uint8
+    )
+    confirm_floor(
+        floor_mask,
+        gray,
+        gray,
+        mapper.calibration.H_ground_from_image,
+        (0.0, 0.0, 0.0),
+        (3 * _STEP_M, 0.0, 0.0),
+        mapper.camera_xy_robot,
+        mapper.parallax,
+        return_standing=True,
+    )
 
 
 def daemon_floor_calibration(config: FloornavConfig) -> FloorCalibration:

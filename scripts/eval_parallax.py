@@ -3,7 +3,10 @@
 Random collision-free poses in the shipped world (plus two facing the doorway), each
 with a reference frame 0.08-0.16 m behind; the colour floor of the shipped perception
 method is extended by `confirm_floor` and the added pixels are scored against the
-renderer's true floor mask.
+renderer's true floor mask. What the test finds standing up (``return_standing``) is
+scored too: the share of it off the true floor, and of the rest, the share within
+``OUTLINE_PX`` of the floor's outline (an edge's evidence spreads onto its neighbours
+in the half-resolution images the test works on).
 
     .venv/bin/python scripts/eval_parallax.py --seed 0
 """
@@ -25,6 +28,7 @@ from app.perception.pipeline import FloorSegmenter
 from app.sim.setup import camera_model, renderer_from_config, sim_floor_calibration
 
 ROOT = Path(__file__).resolve().parents[1]
+OUTLINE_PX = 3
 
 
 def main() -> None:
@@ -45,7 +49,9 @@ def main() -> None:
         if world.clearance_m(x, y) > 0.35:
             poses.append((x, y, t))
     added_true = added_false = colour_true = truth_total = views = 0
-    times = []
+    standing_off = standing_on = standing_outline = tested = 0
+    times, standing_times = [], []
+    near = np.ones((2 * OUTLINE_PX + 1, 2 * OUTLINE_PX + 1), np.uint8)
     for x, y, t in poses:
         baseline = rng.uniform(0.08, 0.16)
         ref = (x - baseline * math.cos(t), y - baseline * math.sin(t), t + rng.uniform(-0.05, 0.05))
@@ -60,9 +66,26 @@ def main() -> None:
             colour, gray_cur, gray_ref, H_ground_from_image, ref, (x, y, t), camera_xy
         )
         times.append(time.perf_counter() - start)
+        start = time.perf_counter()
+        result = planar.confirm_floor(
+            colour,
+            gray_cur,
+            gray_ref,
+            H_ground_from_image,
+            ref,
+            (x, y, t),
+            camera_xy,
+            return_standing=True,
+        )
+        standing_times.append(time.perf_counter() - start)
         added, truth = confirmed & ~colour, cur_frame.floor_mask
         added_true += int((added & truth).sum())
         added_false += int((added & ~truth).sum())
+        outline = cv2.morphologyEx(truth.astype(np.uint8), cv2.MORPH_GRADIENT, near) > 0
+        standing_off += int((result.standing & ~truth).sum())
+        standing_on += int((result.standing & truth).sum())
+        standing_outline += int((result.standing & truth & outline).sum())
+        tested += int(result.tested.sum())
         colour_true += int((colour & truth).sum())
         truth_total += int(truth.sum())
         views += 1
@@ -71,6 +94,13 @@ def main() -> None:
         f"{added_true / truth_total:.3f} of the true floor, {added_false} false pixels, "
         f"precision of the added {added_true / max(1, added_true + added_false):.3f}; "
         f"confirm_floor median {1000 * float(np.median(times)):.1f} ms"
+    )
+    standing = standing_off + standing_on
+    print(
+        f"standing: {standing} of {tested} tested pixels, {standing_off / max(1, standing):.3f}"
+        f" off the true floor; of the {standing_on} on it, "
+        f"{standing_outline / max(1, standing_on):.3f} within {OUTLINE_PX} px of its outline; "
+        f"with return_standing median {1000 * float(np.median(standing_times)):.1f} ms"
     )
 
 

@@ -25,7 +25,10 @@ NEVER_CALLED = {
     "test helper; the daemon's SLIC records its runs inside _iterate",
 }
 """Kernels the daemon never calls, and why."""
-PARALLAX_ONLY = {"app.perception.planar._extend_columns"}
+PARALLAX_ONLY = {
+    "app.perception.planar._extend_columns",
+    "app.perception.planar._parallax_search",
+}
 """Called only with mapping.parallax_floor (off by default; its own test below)."""
 
 _DECORATOR = re.compile(r"^@(numba\.)?n?jit\b", re.MULTILINE)
@@ -156,6 +159,21 @@ def test_parallax_kernel_is_compiled_when_configured() -> None:
     for name in PARALLAX_ONLY:
         module, short = name.rsplit(".", 1)
         assert getattr(importlib.import_module(module), short).signatures, name
+    # Then moving frames through a mapper that runs the test compile nothing more.
+    dispatchers = kernel_dispatchers()
+    before = signature_counts(dispatchers)
+    renderer = renderer_from_config(config)
+    start = renderer.world.start_pose
+    mapper = GroundMapper(
+        sim_floor_calibration(camera_model(config)), config.mapping, config.camera
+    )
+    for step in range(5):
+        pose = Pose2D(0.04 * step, 0.0, 0.0)
+        frame = renderer.render(start.compose(pose)).image
+        floor_mask = FloorSegmenter(config.perception).segment(frame).floor_mask
+        mapper.update(floor_mask, pose, 0.3 * step, frame)
+    assert mapper.parallax_frames > 0
+    assert signature_counts(dispatchers) == before
 
 
 @pytest.mark.parametrize(

@@ -22,6 +22,13 @@ rendering is the simulator's cost, not the daemon's. Each frame then goes throug
     The whole map classified for the web and other readers, which the daemon copies
     every ``WORLD_MAP_PERIOD_S``.
 
+``parallax``
+    `confirm_floor` (`app.perception.planar`), the motion-parallax floor test the
+    mapping stage runs at most every ``PARALLAX_PERIOD_S`` with ``mapping.parallax_floor``:
+    timed apart on pairs of the drive's frames ``mapping.parallax_baseline_m`` apart, at
+    least ``PARALLAX_CALLS`` calls, whether or not the configuration turns it on; also
+    asking for what stands up (``return_standing``).
+
 The two periodic stages are timed on every frame (for their statistics) but reported
 apart, and amortised per frame by the share of frames that run them at the camera's
 rate; steering follows a new frontier path only when the daemon's would.
@@ -50,6 +57,7 @@ from collections.abc import Callable
 from dataclasses import dataclass, field
 from typing import Any, TypeVar
 
+import cv2
 import numpy as np
 from numpy.typing import NDArray
 
@@ -58,8 +66,9 @@ from app.config import FloornavConfig
 from app.control.steering import Steering
 from app.mapping.frames import Pose2D
 from app.mapping.frontiers import FrontierSearch
-from app.mapping.ground_map import GroundMapper
+from app.mapping.ground_map import PARALLAX_PERIOD_S, GroundMapper
 from app.perception.pipeline import FloorSegmenter
+from app.perception.planar import PlanarParams, confirm_floor
 from app.runtime import clearance_ahead_m, map_window, path_to_xy
 from app.runtime.stages import WORLD_MAP_PERIOD_S
 from app.sim.setup import camera_model, renderer_from_config, sim_floor_calibration
@@ -72,6 +81,10 @@ DEFAULT_FRAMES = 60
 WARMUP_FRAMES = 5
 PER_FRAME_STAGES = ("perception", "map_update", "map_window", "steering")
 STAGES = ("perception", "map_update", "frontier", "map_window", "steering", "world_map")
+PARALLAX_CALLS = 50
+"""The parallax test is timed this many times..."""
+PARALLAX_PAIRS = 25
+"""...round this many pairs of frames."""
 
 _T = TypeVar("_T")
 
@@ -205,6 +218,72 @@ def _frames(
     return frames, world, path_min_clearance_m(world, plan_poses)
 
 
+def parallax_lag_frames(config: FloornavConfig) -> int:
+    """Frames between the two views of the parallax test on the drive: the configured
+    baseline at the cruise speed."""
+    step_m = config.steering.cruise_speed_m_s / config.camera.fps_hz
+    return max(1, round(config.mapping.parallax_baseline_m / step_m))
+
+
+def _time_parallax(
+    config: FloornavConfig,
+    segmenter: FloorSegmenter,
+    frames: list[tuple[float, Pose2D, NDArray[np.uint8]]],
+) -> dict[str, Any]:
+    """`confirm_floor` on ``PARALLAX_PAIRS`` frames, each against the one
+    `parallax_lag_frames` before it, round the pairs until ``PARALLAX_CALLS`` calls, after
+    an untimed call that compiles the kernels; the same again asking for what stands
+    up."""
+    lag = parallax_lag_frames(config)
+    G = sim_floor_calibration(camera_model(config)).H_ground_from_image
+    camera_xy = (config.camera.x_m, config.camera.y_m)
+    params = PlanarParams()
+    grays = [
+        np.asarray(cv2.cvtColor(image, cv2.COLOR_BGR2GRAY), np.uint8) for _, _, image in frames
+    ]
+    poses = [(pose.x_m, pose.y_m, pose.theta_rad) for _, pose, _ in frames]
+    pairs = [
+        (
+            segmenter.segment(frames[k][2]).floor_mask,
+            grays[k],
+            grays[k - lag],
+            poses[k - lag],
+            poses[k],
+        )
+        for k in range(lag, lag + PARALLAX_PAIRS)
+    ]
+    samples: dict[bool, list[float]] = {False: [], True: []}
+    for standing in (False, True):
+        floor, cur, ref, ref_pose, cur_pose = pairs[0]
+        confirm_floor(
+            floor, cur, ref, G, ref_pose, cur_pose, camera_xy, params, return_standing=standing
+        )
+        while len(samples[standing]) < PARALLAX_CALLS:
+            for floor, cur, ref, ref_pose, cur_pose in pairs:
+                start = time.perf_counter()
+                confirm_floor(
+                    floor,
+                    cur,
+                    ref,
+                    G,
+                    ref_pose,
+                    cur_pose,
+                    camera_xy,
+                    params,
+                    return_standing=standing,
+                )
+                samples[standing].append((time.perf_counter() - start) * 1e3)
+    return {
+        **_summary(samples[False]),
+        "standing_median": round(float(np.median(samples[True])), 3),
+        "calls": len(samples[False]),
+        "pairs": len(pairs),
+        "baseline_m": round(lag * config.steering.cruise_speed_m_s / config.camera.fps_hz, 3),
+        "period_s": PARALLAX_PERIOD_S,
+        "configured": config.mapping.parallax_floor,
+    }
+
+
 def bench_frame_path(
     config: FloornavConfig, n_frames: int = DEFAULT_FRAMES, *, warmup_frames: int = WARMUP_FRAMES
 ) -> dict[str, Any]:
@@ -231,7 +310,9 @@ def bench_frame_path(
         raise ValueError(f"frames: must be >= 1, got {n_frames} timed, {warmup_frames} warm-up")
     pinned = pin_to_one_cpu()
     segmenter = FloorSegmenter(config.perception)
-    frames, world, clearance = _frames(config, max(n_frames, warmup_frames))
+    frames, world, clearance = _frames(
+        config, max(n_frames, warmup_frames, parallax_lag_frames(config) + PARALLAX_PAIRS)
+    )
     warmup = _FramePath(config, segmenter)
     for t_s, pose, image in frames[:warmup_frames]:
         warmup.step(image, t_s, pose, _Samples())
@@ -267,6 +348,7 @@ def bench_frame_path(
     thread = _summary(samples.per_frame(samples.thread_ms))
     amortized = per_frame_ms["median"] + sum(p["amortized_ms"] for p in periodic.values())
     cpu_amortized = process["median"] + sum(p["cpu_amortized_ms"] for p in periodic.values())
+    parallax = _time_parallax(config, segmenter, frames)
     return {
         "method": config.perception.method,
         "frames": n_frames,
@@ -289,6 +371,7 @@ def bench_frame_path(
         },
         "sustainable_fps": round(1e3 / amortized, 1),
         "steering_reasons": measured.reasons,
+        "parallax_ms": parallax,
         "frame": f"{config.camera.width_px}x{config.camera.height_px} simulated",
         "scene": f"world '{world.name}'",
         "path": (
@@ -327,6 +410,14 @@ def format_frame_path(result: dict[str, Any]) -> str:
         f" {result['budget_share']['wall']:.0%}, CPU {result['budget_share']['cpu']:.0%}"
         f" (sustains {result['sustainable_fps']:.0f} fps)",
     ]
+    if "parallax_ms" in result:
+        p = result["parallax_ms"]
+        lines.append(
+            f"  {'parallax':<12}{p['median']:>9.2f}{p['p95']:>9.2f}{p['max']:>9.2f}"
+            f"   (every {p['period_s']:g} s when mapping.parallax_floor, now"
+            f" {'on' if p['configured'] else 'off'}; {p['calls']} calls on {p['pairs']} pairs"
+            f" {p['baseline_m']:g} m apart; with what stands up {p['standing_median']:.2f})"
+        )
     return "\n".join(lines)
 
 

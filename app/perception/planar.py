@@ -16,6 +16,12 @@ stretch of ground with no evidence at all, and keeps the floor up to the last co
 pixel. A box's foot is on the floor (its junction confirms a pixel or two), its face gives
 nothing and its top edge stands up, so the walk stops at its foot.
 
+`confirm_floor` runs the whole test at half resolution (OpenCV downsamples; both release
+the GIL) and its search is a numba kernel that holds no GIL either, so the mapping thread
+does not stall the others while it runs. It can also return what it found standing up
+(`ParallaxResult`): textured pixels well off the floor plane, whatever their colour, for
+the mapper to tell a box on the floor from the floor.
+
 Pure functions on numpy arrays. Frames: ``H_ground_from_image`` maps undistorted pixels
 (u, v, 1) to the robot frame's floor (x forward, y left, metres).
 """
@@ -24,6 +30,7 @@ from __future__ import annotations
 
 import math
 from dataclasses import dataclass
+from typing import Literal, overload
 
 import cv2
 import numba
@@ -37,7 +44,9 @@ class PlanarParams:
 
     Attributes
     ----------
-    blur_sigma_px : Gaussian smoothing before comparing (noise, aliasing).
+    blur_sigma_px : Gaussian smoothing before comparing (noise, aliasing); 0: none.
+        Light, as the reference is interpolated once, no blurrier than the current
+        frame: more blur spreads an edge's evidence onto its neighbours.
     texture_min : gradient along the epipolar line, grey levels per pixel, below which a
         pixel gives no evidence.
     window_px : side of the window matched at each shift.
@@ -55,7 +64,7 @@ class PlanarParams:
     downscale : `confirm_floor` works on images this many times smaller.
     """
 
-    blur_sigma_px: float = 1.0
+    blur_sigma_px: float = 0.5
     texture_min: float = 3.0
     window_px: int = 5
     planar_max_px: float = 0.5
@@ -69,8 +78,10 @@ class PlanarParams:
     downscale: int = 2
 
 
-SHIFTS_PX = (-3.0, -2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0, 3.0)
-"""Residual parallax searched along each epipolar line (pixels)."""
+SHIFTS_PX = (-2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)
+"""Residual parallax searched along each epipolar line (pixels). Up to `standing_min_px`:
+a larger parallax matches nowhere on the line, which `mismatch_min` catches (searching
++-3 px too changed under 1 % of the verdicts on scripts/eval_parallax.py)."""
 
 
 def view_homography(
@@ -120,11 +131,12 @@ def parallax_evidence(
 ) -> tuple[NDArray[np.bool_], NDArray[np.bool_]]:
     """(on_floor, standing): (H, W) bool masks of the pixels the parallax test decides.
 
-    The reference frame is warped through the floor homography, then shifted along each
-    pixel's epipolar line by each of `SHIFTS_PX`; the shift that matches best (a window's
-    mean absolute difference) is the pixel's residual parallax. Searching, rather than
-    dividing the residual by the gradient, keeps sub-pixel rendering and interpolation
-    error at strong edges from looking like parallax.
+    Each pixel of the current frame is compared with the reference frame where the floor
+    homography puts it, shifted along the pixel's epipolar line by each of `SHIFTS_PX`;
+    the shift that matches best (a window's mean absolute difference) is the pixel's
+    residual parallax. Searching, rather than dividing the residual by the gradient, keeps
+    sub-pixel rendering and interpolation error at strong edges from looking like
+    parallax. Runs at the images' own resolution (`confirm_floor` downsamples first).
 
     Parameters
     ----------
@@ -139,45 +151,236 @@ def parallax_evidence(
             f"gray_cur and gray_ref: expected (H, W) images, got "
             f"{gray_cur.shape} and {gray_ref.shape}"
         )
-    h, w = gray_cur.shape
-    cur = cv2.GaussianBlur(gray_cur.astype(np.float32), (0, 0), p.blur_sigma_px)
-    ref = cv2.GaussianBlur(gray_ref.astype(np.float32), (0, 0), p.blur_sigma_px)
-    warped = cv2.warpPerspective(
-        ref, H_cur_from_ref, (w, h), flags=cv2.INTER_LINEAR, borderValue=np.nan
+    on_floor, standing, _ = _evidence(
+        _blurred(gray_cur, p),
+        _blurred(gray_ref, p),
+        np.asarray(H_cur_from_ref, np.float64),
+        epipole,
+        (0, gray_cur.shape[0]),
+        p,
     )
-    uu, vv = np.meshgrid(np.arange(w, dtype=np.float32), np.arange(h, dtype=np.float32))
-    eu, ev = np.float32(epipole[0]) - uu, np.float32(epipole[1]) - vv
-    norm = np.hypot(eu, ev)
-    norm[norm < 1e-3] = 1.0
-    eu /= norm
-    ev /= norm
-    gu = cv2.Sobel(cur, cv2.CV_32F, 1, 0, ksize=3) / 8.0
-    gv = cv2.Sobel(cur, cv2.CV_32F, 0, 1, ksize=3) / 8.0
-    along = np.abs(gu * eu + gv * ev)
-    window = (p.window_px, p.window_px)
-    costs = np.empty((len(SHIFTS_PX), h, w), np.float32)
-    for k, shift in enumerate(SHIFTS_PX):
-        shifted = cv2.remap(
-            warped,
-            uu + np.float32(shift) * eu,
-            vv + np.float32(shift) * ev,
-            cv2.INTER_LINEAR,
-            borderMode=cv2.BORDER_CONSTANT,
-            borderValue=np.nan,
-        )
-        diff = np.abs(cur - shifted)
-        diff[~np.isfinite(diff)] = 1e6  # off the reference view: never the best
-        costs[k] = cv2.blur(diff, window)
-    best = np.argmin(costs, axis=0)
-    best_shift = np.abs(np.asarray(SHIFTS_PX, np.float32)[best])
-    best_cost = np.take_along_axis(costs, best[None], axis=0)[0]
-    floor_cost = costs[SHIFTS_PX.index(0.0)]
-    textured = (along >= p.texture_min) & (floor_cost < 1e5)
-    # Floor: matches where the floor plane puts it, and well. Standing: matches better
-    # elsewhere on its epipolar line, or nowhere near (a parallax beyond the search).
-    on_floor = textured & (best_shift <= p.planar_max_px) & (best_cost <= p.match_max)
-    standing = textured & ((best_shift >= p.standing_min_px) | (floor_cost >= p.mismatch_min))
     return on_floor, standing
+
+
+def _blurred(gray: NDArray[np.uint8], p: PlanarParams) -> NDArray[np.float32]:
+    """Smoothed against noise and aliasing before comparing (OpenCV: no GIL held)."""
+    image = np.ascontiguousarray(gray, dtype=np.float32)
+    if p.blur_sigma_px <= 0:
+        return image
+    return np.ascontiguousarray(cv2.GaussianBlur(image, (0, 0), p.blur_sigma_px), dtype=np.float32)
+
+
+def _evidence(
+    cur: NDArray[np.float32],
+    ref: NDArray[np.float32],
+    H_cur_from_ref: NDArray[np.float64],
+    epipole: tuple[float, float],
+    rows: tuple[int, int | NDArray[np.int64]],
+    p: PlanarParams,
+) -> tuple[NDArray[np.bool_], NDArray[np.bool_], NDArray[np.bool_]]:
+    """(on_floor, standing, tested) of the rows ``rows[0]`` up to ``rows[1]`` (excluded;
+    one row per column, or one for all) of ``cur``, False elsewhere, from the smoothed
+    images."""
+    h, w = cur.shape
+    on_floor = np.zeros((h, w), np.bool_)
+    standing = np.zeros((h, w), np.bool_)
+    tested = np.zeros((h, w), np.bool_)
+    row_to = np.broadcast_to(np.asarray(rows[1], np.int64), (w,))
+    # Sobel: 8 times the gradient in grey levels per pixel (OpenCV: vectorised, no GIL).
+    grad_u = np.asarray(cv2.Sobel(cur, cv2.CV_32F, 1, 0, ksize=3), np.float32)
+    grad_v = np.asarray(cv2.Sobel(cur, cv2.CV_32F, 0, 1, ksize=3), np.float32)
+    _parallax_search(
+        cur,
+        grad_u,
+        grad_v,
+        ref,
+        np.ascontiguousarray(np.linalg.inv(H_cur_from_ref), dtype=np.float64),
+        float(epipole[0]),
+        float(epipole[1]),
+        int(rows[0]),
+        np.ascontiguousarray(np.clip(row_to, 0, h), dtype=np.int64),
+        _SHIFTS,
+        int(p.window_px),
+        8.0 * float(p.texture_min),
+        float(p.planar_max_px),
+        float(p.standing_min_px),
+        float(p.match_max),
+        float(p.mismatch_min),
+        on_floor,
+        standing,
+        tested,
+    )
+    return on_floor, standing, tested
+
+
+_SHIFTS = np.asarray(sorted(SHIFTS_PX, key=abs), dtype=np.float64)
+"""`SHIFTS_PX` from the floor hypothesis outward: the kernel's search keeps the first
+of equal costs, so a tie goes to the smaller parallax."""
+
+
+@numba.njit(cache=True, nogil=True)
+def _parallax_search(
+    cur: NDArray[np.float32],
+    grad_u: NDArray[np.float32],
+    grad_v: NDArray[np.float32],
+    ref: NDArray[np.float32],
+    H_ref_from_cur: NDArray[np.float64],
+    epipole_u: float,
+    epipole_v: float,
+    row_from: int,
+    row_to: NDArray[np.int64],
+    shifts: NDArray[np.float64],
+    window: int,
+    gradient_min: float,
+    planar_max: float,
+    standing_min: float,
+    match_max: float,
+    mismatch_min: float,
+    on_floor: NDArray[np.bool_],
+    standing: NDArray[np.bool_],
+    tested: NDArray[np.bool_],
+) -> None:
+    """The search of `parallax_evidence` for the pixels (v, u) of ``cur`` with
+    row_from <= v < row_to[u], into the three masks; ``grad_u``, ``grad_v`` are
+    ``cur``'s gradient, in the units of ``gradient_min``.
+
+    Most pixels lack texture, so the textured ones are found first and the reference is
+    sampled only in their windows. It is sampled straight through the homography (one
+    bilinear interpolation, not a warp and then a remap), linearised along each
+    epipolar line (a few hundredths of a pixel off at the ends of the search). A sample
+    needing pixels outside the reference makes its shift's window unusable."""
+    h, w = cur.shape
+    hr, wr = ref.shape
+    n = shifts.shape[0]
+    half = window // 2
+    # A difference standing for "outside the reference view": above any window's sum of
+    # real differences (window**2 * 255), so a window holding one is recognised.
+    off_view = np.float32(max(1e5, 1000.0 * window * window))
+    m = H_ref_from_cur
+    s_lo = shifts.min()
+    s_hi = shifts.max()
+    if hr < 2 or wr < 2:
+        return
+    r0 = max(row_from, 1)
+    r1 = 0
+    for u in range(w):
+        r1 = max(r1, min(row_to[u], h - 1))
+    if r1 <= r0:
+        return
+    a0 = max(r0 - half, 0)  # the rows the windows read
+    a1 = min(r1 + half, h)
+    # 1. Texture across the epipolar line, and the pixels the windows of textured
+    # pixels cover (a textured pixel's row span, then those of rows near it).
+    textured = np.zeros((r1 - r0, w), np.bool_)
+    spans = np.zeros((r1 - r0, w), np.bool_)
+    limit = np.float32(gradient_min * gradient_min)
+    for v in range(r0, r1):
+        to_v = np.float32(epipole_v - v)  # towards the epipole (not normalised)
+        for u in range(1, w - 1):
+            if v >= row_to[u]:
+                continue
+            to_u = np.float32(epipole_u - u)
+            norm2 = to_u * to_u + to_v * to_v
+            along = grad_u[v, u] * to_u + grad_v[v, u] * to_v
+            if along * along < limit * norm2 or norm2 < 1e-6:
+                continue
+            textured[v - r0, u] = True
+            for x in range(max(u - half, 0), min(u + half + 1, w)):
+                spans[v - r0, x] = True
+    needed = np.zeros((a1 - a0, w), np.bool_)
+    for v in range(r0, r1):
+        for y in range(max(v - half, a0), min(v + half + 1, a1)):
+            for x in range(w):
+                needed[y - a0, x] |= spans[v - r0, x]
+    # 2. |cur - ref| at every shift along the epipolar line where a window needs it
+    # (only those entries are ever read).
+    diff = np.empty((a1 - a0, w * n), np.float32)
+    flat_ref = ref.reshape(hr * wr)  # a view (C-contiguous)
+    for v in range(a0, a1):
+        ev = epipole_v - v
+        x_row = m[0, 1] * v + m[0, 2]
+        y_row = m[1, 1] * v + m[1, 2]
+        z_row = m[2, 1] * v + m[2, 2]
+        for u in range(w):
+            if not needed[v - a0, u]:
+                continue
+            j = u * n
+            eu = epipole_u - u
+            norm = math.sqrt(eu * eu + ev * ev)
+            z0 = m[2, 0] * u + z_row
+            if norm < 1e-3 or abs(z0) < 1e-12:
+                diff[v - a0, j : j + n] = off_view
+                continue
+            # Unit direction towards the epipole, over z0 (one division each).
+            to_unit = 1.0 / norm
+            over_z = 1.0 / z0
+            x0 = (m[0, 0] * u + x_row) * over_z
+            y0 = (m[1, 0] * u + y_row) * over_z
+            step = to_unit * over_z
+            zd = (m[2, 0] * eu + m[2, 1] * ev) * step
+            dx = (m[0, 0] * eu + m[0, 1] * ev) * step - x0 * zd
+            dy = (m[1, 0] * eu + m[1, 1] * ev) * step - y0 * zd
+            c = cur[v, u]
+            # The samples lie on a segment: inside the reference if both its ends are.
+            inside = (
+                0.0 <= x0 + s_lo * dx <= wr - 1
+                and 0.0 <= x0 + s_hi * dx <= wr - 1
+                and 0.0 <= y0 + s_lo * dy <= hr - 1
+                and 0.0 <= y0 + s_hi * dy <= hr - 1
+            )
+            for k in range(n):
+                x = x0 + shifts[k] * dx
+                y = y0 + shifts[k] * dy
+                if not inside and not (0.0 <= x <= wr - 1 and 0.0 <= y <= hr - 1):
+                    diff[v - a0, j + k] = off_view
+                    continue
+                ix = min(int(x), wr - 2)
+                iy = min(int(y), hr - 2)
+                fx = np.float32(x - ix)
+                fy = np.float32(y - iy)
+                i = iy * wr + ix
+                top = flat_ref[i] + fx * (flat_ref[i + 1] - flat_ref[i])
+                low = flat_ref[i + wr] + fx * (flat_ref[i + wr + 1] - flat_ref[i + wr])
+                diff[v - a0, j + k] = abs(c - (top + fy * (low - top)))
+    # 3. Each textured pixel's window costs (mean absolute difference) and verdict, from
+    # the window's column sums, each computed once per row.
+    column_sums = np.empty(w * n, np.float32)
+    summed = np.empty(w, np.int64)  # the row whose sums column_sums holds, per column
+    summed[:] = -1
+    cost = np.empty(n, np.float32)
+    for v in range(r0, r1):
+        y0_ = max(v - half, 0)
+        y1_ = min(v + half + 1, h)
+        for u in range(1, w - 1):
+            if not textured[v - r0, u]:
+                continue
+            x0_ = max(u - half, 0)
+            x1_ = min(u + half + 1, w)
+            cost[:] = 0.0
+            for x in range(x0_, x1_):
+                j = x * n
+                if summed[x] != v:
+                    summed[x] = v
+                    column_sums[j : j + n] = 0.0
+                    for y in range(y0_, y1_):
+                        for k in range(n):
+                            column_sums[j + k] += diff[y - a0, j + k]
+                for k in range(n):
+                    cost[k] += column_sums[j + k]
+            if cost[0] >= off_view:
+                continue  # the floor's window leaves the reference view: no evidence
+            tested[v, u] = True
+            best = 0
+            for k in range(1, n):
+                if cost[k] < cost[best]:
+                    best = k
+            area = np.float32((y1_ - y0_) * (x1_ - x0_))
+            best_shift = abs(shifts[best])
+            # Floor: matches where the floor plane puts it, and well. Standing: matches
+            # better elsewhere on its epipolar line, or nowhere near (a parallax beyond
+            # the search).
+            on_floor[v, u] = best_shift <= planar_max and cost[best] <= match_max * area
+            standing[v, u] = best_shift >= standing_min or cost[0] >= mismatch_min * area
 
 
 def row_ground_distance_m(
@@ -274,6 +477,27 @@ def _rigid(x_m: float, y_m: float, theta_rad: float) -> NDArray[np.float64]:
     return np.array([[c, -s, x_m], [s, c, y_m], [0.0, 0.0, 1.0]])
 
 
+@dataclass(frozen=True)
+class ParallaxResult:
+    """What one parallax test found, as (H, W) bool masks of the current frame.
+
+    Attributes
+    ----------
+    floor : the colour floor extended by parallax-confirmed floor (never less).
+    standing : pixels confidently off the floor plane: textured across their epipolar
+        line, and matching the earlier view only displaced (or not at all) where the
+        floor would put them. What stands up (a box's edges, its texture), whatever
+        its colour.
+    tested : pixels the test could decide (textured across their epipolar line, seen in
+        the earlier view, in the rows tested); the rest gave no evidence either way.
+    """
+
+    floor: NDArray[np.bool_]
+    standing: NDArray[np.bool_]
+    tested: NDArray[np.bool_]
+
+
+@overload
 def confirm_floor(
     floor_mask: NDArray[np.bool_],
     gray_cur: NDArray[np.uint8],
@@ -283,10 +507,45 @@ def confirm_floor(
     T_world_cur: tuple[float, float, float],
     camera_xy_robot: tuple[float, float],
     params: PlanarParams | None = None,
-) -> NDArray[np.bool_]:
+    *,
+    return_standing: Literal[False] = False,
+) -> NDArray[np.bool_]: ...
+
+
+@overload
+def confirm_floor(
+    floor_mask: NDArray[np.bool_],
+    gray_cur: NDArray[np.uint8],
+    gray_ref: NDArray[np.uint8],
+    H_ground_from_image: NDArray[np.float64],
+    T_world_ref: tuple[float, float, float],
+    T_world_cur: tuple[float, float, float],
+    camera_xy_robot: tuple[float, float],
+    params: PlanarParams | None = None,
+    *,
+    return_standing: Literal[True],
+) -> ParallaxResult: ...
+
+
+def confirm_floor(
+    floor_mask: NDArray[np.bool_],
+    gray_cur: NDArray[np.uint8],
+    gray_ref: NDArray[np.uint8],
+    H_ground_from_image: NDArray[np.float64],
+    T_world_ref: tuple[float, float, float],
+    T_world_cur: tuple[float, float, float],
+    camera_xy_robot: tuple[float, float],
+    params: PlanarParams | None = None,
+    *,
+    return_standing: bool = False,
+) -> NDArray[np.bool_] | ParallaxResult:
     """The whole test: ``floor_mask`` extended by parallax-confirmed floor, computed at
     1 / ``params.downscale`` resolution (the cost is in the search) and only ever adding
     floor. Returns ``floor_mask`` itself when the views give no parallax to test.
+
+    With ``return_standing``, a `ParallaxResult` instead, whose ``standing`` and
+    ``tested`` cover every row below the horizon (not just the rows the floor's
+    extension can reach, which is all the floor needs); its ``floor`` is the same mask.
 
     Parameters
     ----------
@@ -303,42 +562,89 @@ def confirm_floor(
             f"gray_cur {gray_cur.shape} and gray_ref {gray_ref.shape} must match "
             f"floor_mask {floor_mask.shape}"
         )
+
+    def result(
+        floor: NDArray[np.bool_],
+        standing: NDArray[np.bool_] | None = None,
+        tested: NDArray[np.bool_] | None = None,
+    ) -> NDArray[np.bool_] | ParallaxResult:
+        if not return_standing:
+            return floor
+        nothing = np.zeros((h, w), np.bool_)
+        return ParallaxResult(
+            floor,
+            nothing if standing is None else _upsampled(standing, (w, h)),
+            nothing if tested is None else _upsampled(tested, (w, h)),
+        )
+
     k = p.downscale
     # Pixel centres of the small image in the full one: u_full = k * u + (k - 1) / 2.
     S = np.array([[k, 0.0, (k - 1) / 2.0], [0.0, k, (k - 1) / 2.0], [0.0, 0.0, 1.0]])
     G = np.asarray(H_ground_from_image, dtype=np.float64) @ S
     epipole = epipole_px(G, T_world_ref, T_world_cur, camera_xy_robot)
     if epipole is None:
-        return floor_mask
+        return result(floor_mask)
     small = (w // k, h // k)
-    cur = np.asarray(cv2.resize(gray_cur, small, interpolation=cv2.INTER_AREA), np.uint8)
-    ref = np.asarray(cv2.resize(gray_ref, small, interpolation=cv2.INTER_AREA), np.uint8)
-    mask = cv2.resize(floor_mask.astype(np.uint8), small, interpolation=cv2.INTER_NEAREST) > 0
+    mask = np.ascontiguousarray(floor_mask[::k, ::k][: small[1], : small[0]], dtype=np.bool_)
     distance = row_ground_distance_m(G, *small)
-    # Only the rows a column walk can reach: from the lowest end of the floor seen from
-    # the bottom up to the row at max_range_m (the search is the costly part).
-    bottom_run = np.logical_and.accumulate(mask[::-1], axis=0).sum(axis=0)
+    from_bottom = mask[::-1]
+    bottom_run = np.where(from_bottom.all(axis=0), small[1], np.argmin(from_bottom, axis=0))
     walks = bottom_run > 0
+    below_horizon = np.flatnonzero(np.isfinite(distance))
     reachable = np.flatnonzero(np.isfinite(distance) & (distance <= p.max_range_m))
-    if not walks.any() or reachable.size == 0:
-        return floor_mask
-    pad = p.window_px + 2
-    r0 = max(int(reachable[0]) - pad, 0)
-    r1 = min(int(small[1] - bottom_run[walks].min()) + pad, small[1])
-    if r1 <= r0:
-        return floor_mask
-    T_band_from_small = np.array([[1.0, 0.0, 0.0], [0.0, 1.0, -r0], [0.0, 0.0, 1.0]])
-    band_on, band_standing = parallax_evidence(
-        cur[r0:r1],
-        ref,
-        T_band_from_small @ view_homography(G, T_world_ref, T_world_cur),
-        (epipole[0], epipole[1] - r0),
+    # The pixels a column walk can reach: in a column whose bottom pixel is floor, from
+    # the top of that floor up to the row at max_range_m (the search is the costly
+    # part)...
+    r0: int = small[1]
+    row_to = np.where(walks, small[1] - bottom_run, 0).astype(np.int64)
+    if walks.any() and reachable.size > 0:
+        r0 = int(reachable[0])
+    if return_standing and below_horizon.size > 0:
+        # ... or, for what stands, every pixel below the horizon.
+        r0 = min(r0, int(below_horizon[0]))
+        row_to[:] = small[1]
+    if int(row_to.max()) <= r0:
+        return result(floor_mask)
+    cur = _small_gray(gray_cur, small)
+    ref = _small_gray(gray_ref, small)
+    on_floor, standing, tested = _evidence(
+        _blurred(cur, p),
+        _blurred(ref, p),
+        view_homography(G, T_world_ref, T_world_cur),
+        epipole,
+        (r0, row_to),
         p,
     )
-    on_floor = np.zeros_like(mask)
-    standing = np.zeros_like(mask)
-    on_floor[r0:r1] = band_on
-    standing[r0:r1] = band_standing
+    if not walks.any():
+        return result(floor_mask, standing, tested)
     extended = extend_floor(mask, on_floor, standing, distance, p)
-    added = cv2.resize((extended & ~mask).astype(np.uint8), (w, h), interpolation=cv2.INTER_NEAREST)
-    return np.asarray(floor_mask | (added > 0), dtype=np.bool_)
+    return result(_with_added(floor_mask, extended & ~mask, k), standing, tested)
+
+
+def _small_gray(gray: NDArray[np.uint8], size: tuple[int, int]) -> NDArray[np.uint8]:
+    """``gray`` at ``size`` (width, height): area averaging, which also antialiases."""
+    if (gray.shape[1], gray.shape[0]) == size:
+        return gray
+    return np.asarray(cv2.resize(gray, size, interpolation=cv2.INTER_AREA), np.uint8)
+
+
+def _with_added(
+    floor_mask: NDArray[np.bool_], added: NDArray[np.bool_], k: int
+) -> NDArray[np.bool_]:
+    """A copy of ``floor_mask`` with the small mask ``added`` (1 / k of its size) set,
+    upsampled only over the rows that add anything."""
+    out = np.array(floor_mask, dtype=np.bool_, copy=True)
+    rows = np.flatnonzero(added.any(axis=1))
+    if rows.size > 0:
+        a, b = int(rows[0]), int(rows[-1]) + 1
+        h, w = out.shape
+        band = _upsampled(added[a:b], (w, min(k * b, h) - k * a))
+        out[k * a : k * a + band.shape[0]] |= band
+    return out
+
+
+def _upsampled(mask: NDArray[np.bool_], size: tuple[int, int]) -> NDArray[np.bool_]:
+    """A small mask back at ``size`` (width, height), each pixel as the block it stands
+    for."""
+    big = cv2.resize(mask.view(np.uint8), size, interpolation=cv2.INTER_NEAREST)
+    return np.asarray(big > 0, dtype=np.bool_)

@@ -61,7 +61,14 @@ def test_bench_json_has_the_daemon_frame_path(capsys: pytest.CaptureFixture[str]
     assert path["sustainable_fps"] > 0
     assert sum(path["steering_reasons"].values()) == 3
     assert path["path_min_clearance_m"] > 0.3
-    assert "daemon per-frame path" in format_frame_path(path)
+    parallax = path["parallax_ms"]  # timed whether or not the config turns it on
+    assert parallax["calls"] >= 50 and parallax["pairs"] == 25
+    assert 0 < parallax["median"] <= parallax["p95"] <= parallax["max"]
+    assert parallax["standing_median"] > 0
+    assert parallax["baseline_m"] == pytest.approx(0.12, abs=0.02)
+    assert parallax["configured"] is False  # the shipped config's
+    text = format_frame_path(path)
+    assert "daemon per-frame path" in text and "\n  parallax " in text
 
 
 def test_bench_text_prints_only_the_sections_asked_for(capsys: pytest.CaptureFixture[str]) -> None:

@@ -1,9 +1,12 @@
 """Floor confirmed by motion parallax: exact geometry, the column walk on tiny arrays,
-and the whole test on simulated frames scored against the renderer's ground truth."""
+the whole test on synthetic views of known geometry (a textured floor, a textured box
+face, a plain patch) and on simulated frames scored against the renderer's ground
+truth."""
 
 from __future__ import annotations
 
 import math
+from dataclasses import dataclass, replace
 from pathlib import Path
 
 import cv2
@@ -160,3 +163,189 @@ def test_parallax_evidence_rejects_bad_shapes() -> None:
         planar.parallax_evidence(
             np.zeros((4, 4, 3), np.uint8), np.zeros((4, 4), np.uint8), np.eye(3), (2.0, -50.0)
         )
+
+
+# Synthetic views: a floor with a smooth random texture, plain beyond FAR_X_M and where
+# the world's y > PLAIN_Y_M, and a textured box face across the view (x = BOX[0],
+# BOX[1] <= y <= BOX[2], 0 <= z <= BOX[3]). The camera moves straight ahead.
+TEXEL_M = 0.03
+FAR_X_M = 3.0
+PLAIN_Y_M = 0.45
+PLAIN_GREY = 110.0
+BOX = (1.2, -0.35, 0.25, 0.18)
+CUR_POSE, REF_POSE = (0.0, 0.0, 0.0), (-0.12, 0.0, 0.0)
+COLOUR_TOP_ROW = 330
+"""The colour method's floor: every row below this one."""
+
+
+def smooth_texture(seed: int, size: int = 256) -> np.ndarray:
+    rng = np.random.default_rng(seed)
+    noise = cv2.GaussianBlur(rng.normal(0.0, 1.0, (size, size)).astype(np.float32), (0, 0), 1.0)
+    return np.asarray(128.0 + 45.0 * noise / noise.std(), np.float32)
+
+
+def sample_texture(texture: np.ndarray, a_m: np.ndarray, b_m: np.ndarray) -> np.ndarray:
+    """``texture`` at (a, b) metres (tiled), bilinear."""
+    to_texels = [
+        np.nan_to_num(c / TEXEL_M, posinf=0.0, neginf=0.0).astype(np.float32) for c in (a_m, b_m)
+    ]
+    return np.asarray(
+        cv2.remap(texture, *to_texels, cv2.INTER_LINEAR, borderMode=cv2.BORDER_WRAP), np.float32
+    )
+
+
+@dataclass(frozen=True)
+class SyntheticView:
+    gray: np.ndarray
+    face: np.ndarray
+    """The box face's pixels."""
+    plain: np.ndarray
+    """The pixels of the plain floor patch."""
+
+
+def synthetic_view(pose: tuple[float, float, float], supersample: int = 2) -> SyntheticView:
+    """The camera's grey frame at the robot ``pose``, ray-cast at ``supersample`` times
+    the resolution and averaged down (against aliasing), with sensor noise."""
+    big = replace(
+        MODEL,
+        width_px=MODEL.width_px * supersample,
+        height_px=MODEL.height_px * supersample,
+        fx_px=MODEL.fx_px * supersample,
+        fy_px=MODEL.fy_px * supersample,
+    )
+    rays = big.rays_robot()
+    x, y, t = pose
+    c, s = math.cos(t), math.sin(t)
+    rx = c * rays[..., 0] - s * rays[..., 1]
+    ry = s * rays[..., 0] + c * rays[..., 1]
+    rz = rays[..., 2]
+    ex, ey, ez = (
+        x + c * MODEL.x_m - s * MODEL.y_m,
+        y + s * MODEL.x_m + c * MODEL.y_m,
+        MODEL.height_m,
+    )
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_floor = np.where(rz < 0, ez / -rz, np.inf)
+        t_face = np.where(rx > 0, (BOX[0] - ex) / rx, np.inf)
+    floor = np.isfinite(t_floor)
+    fx, fy = ex + t_floor * rx, ey + t_floor * ry
+    image = sample_texture(smooth_texture(1), fx, fy)
+    image[~floor] = 200.0  # the wall far away: plain
+    image[floor & ((fx > FAR_X_M) | (fy > PLAIN_Y_M))] = PLAIN_GREY
+    hy, hz = ey + t_face * ry, ez + t_face * rz
+    face = np.isfinite(t_face) & (t_face < t_floor) & (hy >= BOX[1]) & (hy <= BOX[2])
+    face &= (hz >= 0.0) & (hz <= BOX[3])
+    image[face] = sample_texture(smooth_texture(2), hy, BOX[3] - hz)[face]
+    plain = floor & ~face & (fy > PLAIN_Y_M) & (fx <= FAR_X_M)
+    size = (MODEL.width_px, MODEL.height_px)
+
+    def down(values: np.ndarray) -> np.ndarray:
+        return np.asarray(cv2.resize(values, size, interpolation=cv2.INTER_AREA), np.float32)
+
+    noise = np.random.default_rng(3).normal(0.0, 2.0, (MODEL.height_px, MODEL.width_px))
+    gray = np.clip(down(image) + noise, 0, 255).astype(np.uint8)
+    return SyntheticView(
+        gray, down(face.astype(np.float32)) > 0.5, down(plain.astype(np.float32)) > 0.5
+    )
+
+
+Synthetic = tuple[SyntheticView, np.ndarray, planar.ParallaxResult]
+
+
+@pytest.fixture(scope="module")
+def synthetic() -> Synthetic:
+    """(current view, colour floor mask, the parallax test's result against the view
+    0.12 m behind)."""
+    cur, ref = synthetic_view(CUR_POSE), synthetic_view(REF_POSE)
+    colour = np.zeros(cur.gray.shape, bool)
+    colour[COLOUR_TOP_ROW:] = True
+    result = planar.confirm_floor(
+        colour, cur.gray, ref.gray, G, REF_POSE, CUR_POSE, CAMERA_XY, return_standing=True
+    )
+    return cur, colour, result
+
+
+def open_floor(view: SyntheticView, colour: np.ndarray) -> np.ndarray:
+    """Textured floor above the colour floor and within reach of the walk, clear of the
+    box by a few pixels."""
+    dist = planar.row_ground_distance_m(G, MODEL.width_px, MODEL.height_px)
+    reach = (np.isfinite(dist) & (dist <= 0.95 * planar.PlanarParams().max_range_m))[:, None]
+    near_box = cv2.dilate(view.face.astype(np.uint8), np.ones((9, 9), np.uint8)) > 0
+    return np.asarray(reach & ~colour & ~view.plain & ~near_box, dtype=bool)
+
+
+def test_a_textured_floor_seen_from_two_poses_is_confirmed(synthetic: Synthetic) -> None:
+    view, colour, result = synthetic
+    zone = open_floor(view, colour)
+    assert zone.sum() > 50000
+    assert (result.floor & zone).sum() >= 0.85 * zone.sum()
+    assert not (colour & ~result.floor).any(), "only ever adds floor"
+    # Floor is tested (it is textured) and, within reach, hardly ever stands up.
+    assert (result.tested & zone).sum() >= 0.3 * zone.sum()
+    assert (result.standing & zone).sum() <= 0.02 * (result.tested & zone).sum()
+
+
+def test_a_textured_box_face_stands_up_and_stops_the_floor_at_its_foot(
+    synthetic: Synthetic,
+) -> None:
+    view, colour, result = synthetic
+    rows = np.flatnonzero(view.face.any(axis=1))
+    upper = np.zeros_like(view.face)
+    upper[rows[0] : rows[0] + 3 * len(rows) // 4] = True  # all but its foot, whose
+    # parallax is below what the test resolves
+    face_upper = view.face & upper
+    assert (result.tested & face_upper).sum() >= 0.4 * face_upper.sum()
+    assert (result.standing & face_upper).sum() >= 0.6 * (result.tested & face_upper).sum()
+    assert not (result.floor & face_upper).any()
+    # The floor in front of the box is confirmed up to it.
+    in_front = open_floor(view, colour)[:, view.face.any(axis=0)]
+    assert (result.floor[:, view.face.any(axis=0)] & in_front).sum() >= 0.85 * in_front.sum()
+
+
+def test_plain_floor_gives_no_evidence(synthetic: Synthetic) -> None:
+    view, _, result = synthetic
+    inside = cv2.erode(view.plain.astype(np.uint8), np.ones((15, 15), np.uint8)) > 0
+    assert inside.sum() > 10000
+    assert not (result.tested & inside).any()
+    assert not (result.standing & inside).any()
+
+
+def test_asking_for_what_stands_changes_nothing_of_the_floor(synthetic: Synthetic) -> None:
+    view, colour, result = synthetic
+    ref = synthetic_view(REF_POSE)
+    floor = planar.confirm_floor(colour, view.gray, ref.gray, G, REF_POSE, CUR_POSE, CAMERA_XY)
+    assert isinstance(floor, np.ndarray) and np.array_equal(floor, result.floor)
+    assert result.standing.shape == result.tested.shape == colour.shape
+    assert not (result.standing & ~result.tested).any()
+
+
+def test_without_translation_nothing_is_tested() -> None:
+    gray = synthetic_view(CUR_POSE).gray
+    colour = np.zeros(gray.shape, bool)
+    colour[COLOUR_TOP_ROW:] = True
+    assert planar.confirm_floor(colour, gray, gray, G, CUR_POSE, CUR_POSE, CAMERA_XY) is colour
+    result = planar.confirm_floor(
+        colour, gray, gray, G, CUR_POSE, CUR_POSE, CAMERA_XY, return_standing=True
+    )
+    assert result.floor is colour and not result.standing.any() and not result.tested.any()
+
+
+def test_parallax_evidence_tells_floor_from_the_box_at_full_resolution(
+    synthetic: Synthetic,
+) -> None:
+    view, colour, _ = synthetic
+    ref = synthetic_view(REF_POSE)
+    H = planar.view_homography(G, REF_POSE, CUR_POSE)
+    epipole = planar.epipole_px(G, REF_POSE, CUR_POSE, CAMERA_XY)
+    assert epipole is not None
+    on_floor, standing = planar.parallax_evidence(view.gray, ref.gray, H, epipole)
+    zone = open_floor(view, colour)
+    assert (on_floor & zone).sum() > 5000
+    assert (standing & zone).sum() <= 0.05 * (on_floor & zone).sum()
+    assert (standing & view.face).sum() > 10 * (on_floor & view.face).sum()
+
+
+def test_the_search_holds_no_gil() -> None:
+    """The mapping thread runs it while the others go on (app/jit.py compiles it)."""
+    for kernel in (planar._parallax_search, planar._extend_columns):
+        assert kernel.targetoptions.get("nogil") is True
