@@ -21,10 +21,10 @@ from numpy.typing import NDArray
 
 sys.path.insert(0, str(Path(__file__).resolve().parents[1]))
 
-from app.config import DEFAULT_CONFIG_PATH, load_config  # noqa: E402
-from app.mapping.map_files import load_map  # noqa: E402
-from app.mapping.occupancy import FREE, OCCUPIED, UNKNOWN  # noqa: E402
-from app.sim.setup import world_from_config  # noqa: E402
+from app.config import DEFAULT_CONFIG_PATH, load_config
+from app.mapping.map_files import load_map
+from app.mapping.occupancy import FREE, OCCUPIED, UNKNOWN
+from app.sim.setup import world_from_config
 
 PIXELS_PER_CELL = 4
 

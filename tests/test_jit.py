@@ -29,7 +29,8 @@ PARALLAX_ONLY = {
     "app.perception.planar._extend_columns",
     "app.perception.planar._parallax_search",
 }
-"""Called only with mapping.parallax_floor (off by default; its own test below)."""
+"""Called only with mapping.parallax_floor (on by default, off with a lens model; its own
+test below)."""
 
 _DECORATOR = re.compile(r"^@(numba\.)?n?jit\b", re.MULTILINE)
 

@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 from app.config import CameraConfig, MappingConfig
 from app.mapping.calibration import FloorCalibration
 from app.mapping.floor_memory import FloorMemory, patch_world_index
-from app.mapping.frames import FLOOR, GroundGrid, Pose2D
+from app.mapping.frames import FLOOR, NOT_FLOOR, GroundGrid, Pose2D
 from app.mapping.frontiers import FrontierParams, FrontierSearch, find_frontiers, footprint_mask
 from app.mapping.ipm import BirdseyeMap, birdseye_floor_patch, build_birdseye_map
 from app.mapping.occupancy import (
@@ -27,12 +27,12 @@ from app.mapping.occupancy import (
     SavedMap,
     UpdateSummary,
 )
-from app.perception.planar import PlanarParams, confirm_floor, view_homography
+from app.perception.planar import ParallaxResult, PlanarParams, confirm_floor, view_homography
 
 _NO_SECOND_MAP = np.empty((0, 0), dtype=np.uint16)
 """cv2.remap's second map, unused with the fixed-point `BirdseyeMap.nearest_map`."""
 PARALLAX_PERIOD_S = 0.2
-"""The parallax test runs at most this often (~8 ms a frame)..."""
+"""The parallax test runs at most this often (~2-3 ms a frame, nogil)..."""
 PARALLAX_CARRY_S = 0.5
 """...and its confirmed floor is carried to the frames between for at most this long."""
 _STORED_VIEWS = 24
@@ -156,11 +156,9 @@ class GroundMapper:
         frame's ``image`` (BGR or grey), the floor is first extended where motion parallax
         against an earlier frame confirms it (`app.perception.planar`); ``now_s`` paces
         that test."""
-        flat: NDArray[np.bool_] | None = None
+        tested: ParallaxResult | None = None
         if image is not None and self.parallax is not None:
-            extended = self._confirm_by_parallax(floor_mask, image, T_world_robot, now_s)
-            flat = extended & ~floor_mask
-            floor_mask = extended
+            floor_mask, tested = self._confirm_by_parallax(floor_mask, image, T_world_robot, now_s)
         patch = birdseye_floor_patch(floor_mask, self.birdseye)
         # The thesis's safe-zone assumption: the strip just ahead of the robot, below the
         # camera's view, is free floor.
@@ -180,8 +178,15 @@ class GroundMapper:
                 dtype=np.uint8,
             )
             memory.observe_colours(patch_bgr, patch, index, self._near_cells)
-        if flat is not None and flat.any():
+        if tested is not None:
+            # Geometry over colour: what parallax found flat is known floor from now on;
+            # what it found standing is not floor, whatever its colour (a floor-coloured
+            # box or wall panel), and its colour is unlearned.
+            flat = tested.floor & tested.tested & ~tested.standing
             memory.confirm_cells(index[birdseye_floor_patch(flat, self.birdseye) == FLOOR])
+            standing = birdseye_floor_patch(tested.standing, self.birdseye) == FLOOR
+            memory.mark_standing(index[standing])
+            patch[standing] = NOT_FLOOR
         memory.drive_over(T_world_robot, self.mapping.robot_radius_m)
         corrected = memory.correct_patch(patch, index)
         summary = self.grid.update(patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot)
@@ -212,7 +217,9 @@ class GroundMapper:
 
     def _confirm_by_parallax(
         self, floor_mask: NDArray[np.bool_], image: NDArray[np.uint8], pose: Pose2D, now_s: float
-    ) -> NDArray[np.bool_]:
+    ) -> tuple[NDArray[np.bool_], ParallaxResult | None]:
+        """The floor mask extended by parallax, and the test's result when one ran on
+        this frame (between tests the last confirmed floor is carried over)."""
         assert self.parallax is not None
         gray = np.asarray(
             cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image, np.uint8
@@ -237,7 +244,7 @@ class GroundMapper:
         if best is not None and gray.shape == best[0].shape and now_s >= self._parallax_due_s:
             self._parallax_due_s = now_s + PARALLAX_PERIOD_S
             self.parallax_frames += 1
-            extended = confirm_floor(
+            result = confirm_floor(
                 floor_mask,
                 gray,
                 best[0],
@@ -246,9 +253,10 @@ class GroundMapper:
                 here,
                 self.camera_xy_robot,
                 self.parallax,
+                return_standing=True,
             )
-            self._confirmed = (extended & ~floor_mask, here, now_s)
-            return extended
+            self._confirmed = (result.floor & ~floor_mask, here, now_s)
+            return result.floor, result
         if self._confirmed is not None and now_s - self._confirmed[2] <= PARALLAX_CARRY_S:
             # Between tests, the last confirmed floor carries over exactly: it lies on the
             # floor plane, which the homography between the two poses maps.
@@ -258,8 +266,8 @@ class GroundMapper:
             carried = cv2.warpPerspective(
                 added.astype(np.uint8), H, (w, h), flags=cv2.INTER_NEAREST, borderValue=0
             )
-            return np.asarray(floor_mask | (carried > 0), dtype=np.bool_)
-        return floor_mask
+            return np.asarray(floor_mask | (carried > 0), dtype=np.bool_), None
+        return floor_mask, None
 
     def frontiers(
         self,
