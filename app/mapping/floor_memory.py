@@ -32,10 +32,8 @@ from numpy.typing import NDArray
 
 from app.mapping.frames import FLOOR, NOT_FLOOR, UNSEEN, GroundGrid, Pose2D
 
-LAB_CENTER = np.array([50.0, 0.0, 0.0], dtype=np.float32)
-LAB_SCALE = np.array([50.0, 40.0, 40.0], dtype=np.float32)
-"""The floor network's colour scaling (`app.perception.floor_net`): CIELAB to about
-[-1, 1], so appearances can be handed to it as they are."""
+# Appearances are kept in the floor network's scaled CIELAB, to be handed to it as they are.
+from app.perception.floor_net import LAB_CENTER, LAB_SCALE
 
 
 @dataclass(frozen=True)

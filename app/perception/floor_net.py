@@ -36,8 +36,8 @@ OUTPUT_HEIGHT_PX = INPUT_HEIGHT_PX // 2
 N_INPUT_CHANNELS = 6
 DEFAULT_MODEL_PATH = Path(__file__).with_name("models") / "floor_net.onnx"
 
-_LAB_CENTER = np.array([50.0, 0.0, 0.0], dtype=np.float32)
-_LAB_SCALE = np.array([50.0, 40.0, 40.0], dtype=np.float32)
+LAB_CENTER = np.array([50.0, 0.0, 0.0], dtype=np.float32)
+LAB_SCALE = np.array([50.0, 40.0, 40.0], dtype=np.float32)
 """L in [0, 100] and a, b in about [-40, 40] mapped to about [-1, 1]."""
 
 
@@ -49,7 +49,7 @@ def scaled_lab(bgr: NDArray[np.uint8]) -> NDArray[np.float32]:
     """The frame at network input size in the network's scaled CIELAB (H, W, 3)."""
     small = cv2.resize(bgr, (INPUT_WIDTH_PX, INPUT_HEIGHT_PX), interpolation=cv2.INTER_AREA)
     lab = cv2.cvtColor(small.astype(np.float32) * (1.0 / 255.0), cv2.COLOR_BGR2Lab)
-    return np.asarray((lab - _LAB_CENTER) / _LAB_SCALE, dtype=np.float32)
+    return np.asarray((lab - LAB_CENTER) / LAB_SCALE, dtype=np.float32)
 
 
 def blob_for_reference(
