@@ -66,7 +66,7 @@ def test_bench_json_has_the_daemon_frame_path(capsys: pytest.CaptureFixture[str]
     assert 0 < parallax["median"] <= parallax["p95"] <= parallax["max"]
     assert parallax["standing_median"] > 0
     assert parallax["baseline_m"] == pytest.approx(0.12, abs=0.02)
-    assert parallax["configured"] is False  # the shipped config's
+    assert parallax["configured"] is True  # the shipped config's
     text = format_frame_path(path)
     assert "daemon per-frame path" in text and "\n  parallax " in text
 
