@@ -54,12 +54,13 @@ def write_report(path: Path, report: dict[str, Any]) -> None:
 
 
 async def _serve(runtime: Runtime, duration_s: float | None, token: str) -> None:
+    from app.bridges import bridge_services
     from app.web.server import WebService
 
     web = WebService(runtime, token=token)
     freezer = asyncio.create_task(_freeze_startup_objects(runtime))
     try:
-        await runtime.run(duration_s=duration_s, services=[web])
+        await runtime.run(duration_s=duration_s, services=[web, *bridge_services(runtime, token)])
     finally:
         freezer.cancel()
 
