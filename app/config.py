@@ -127,7 +127,8 @@ class CameraConfig(StrictModel):
     y_m: Annotated[float, Field(ge=-1.0, le=1.0)] = 0.0
     source: Literal["sim", "device", "replay"] = "sim"
     """``sim``: rendered from the simulated robot's pose; ``device``: a webcam
-    (``device``); ``replay``: a video, image folder or recording (``device`` is its path)."""
+    (``device``); ``replay``: a video, image folder or recording (``device`` is its path;
+    a ``.mcap`` recording plays at its recorded timing, whatever ``fps_hz`` says)."""
     device: str = "0"
     """Webcam index (``0``) or path (``/dev/v4l/by-id/...``), or the replay source."""
     fps_hz: Annotated[float, Field(gt=0.0, le=240.0)] = 30.0
@@ -169,6 +170,10 @@ class MappingConfig(StrictModel):
     """Adds this much to a frontier's path length per radian it lies off the heading."""
     frontier_exclude_radius_m: Annotated[float, Field(ge=0.0, le=5.0)] = 0.5
     """Frontiers this close to the robot are ignored (the camera cannot see beside it)."""
+    frontier_probe_edges: bool = True
+    """With no reachable frontier left, drive up to an edge of the floor that geometry
+    has not seen standing (a rug, a threshold) so the parallax test can look at it
+    (`app.mapping.frontiers`); exploration finishes when no such edge is left."""
     robot_radius_m: Annotated[float, Field(gt=0.0, le=2.0)] = 0.12
     inflation_radius_m: Annotated[float, Field(ge=0.0, le=2.0)] = 0.15
     parallax_floor: bool = True
@@ -180,6 +185,25 @@ class MappingConfig(StrictModel):
     parallax_baseline_m: Annotated[float, Field(ge=0.03, le=0.5)] = 0.12
     """Camera travel between the two frames compared (nearest stored view is used)."""
     parallax_max_turn_rad: Annotated[float, Field(ge=0.0, le=1.0)] = 0.2
+    scan_matching: bool = False
+    """Localize against the map (`app.mapping.scan_match`): wheel odometry drifts (slip,
+    tyre scale), and a map fused at drifting poses smears. Off by default: on the same
+    scripted tours it left the pose further from the truth than odometry alone
+    (`scripts/measure_localization.py`, docs/measurements/localization.json). Every
+    ``scan_match_period_s`` the frame's floor boundary, read as a range scan, is matched
+    against the map's obstacles around the odometry pose (~2-3 ms, nogil); a confident
+    match moves odometry ``scan_match_gain_frac`` of the way (at most
+    ``scan_match_max_step_m`` / ``scan_match_max_step_rad`` per match)."""
+    scan_match_period_s: Annotated[float, Field(ge=0.05, le=10.0)] = 0.25
+    scan_match_window_m: Annotated[float, Field(ge=0.02, le=0.5)] = 0.15
+    """The match searches the odometry pose +- this in x and y..."""
+    scan_match_window_rad: Annotated[float, Field(ge=0.01, le=0.5)] = 0.105
+    """...and +- this in heading (6 degrees): more drift than a period's worth."""
+    scan_match_gain_frac: Annotated[float, Field(gt=0.0, le=1.0)] = 0.5
+    """Fraction of a match's offset applied: the next matches finish the move, so one
+    wrong match moves the pose only part of the way."""
+    scan_match_max_step_m: Annotated[float, Field(gt=0.0, le=0.2)] = 0.03
+    scan_match_max_step_rad: Annotated[float, Field(gt=0.0, le=0.2)] = 0.02
 
     @model_validator(mode="after")
     def _check_extent(self) -> MappingConfig:
@@ -217,6 +241,17 @@ class SimConfig(StrictModel):
     focal_px: Annotated[float, Field(ge=50.0, le=5000.0)] = 500.0
     noise_sigma: Annotated[float, Field(ge=0.0, le=50.0)] = 2.0
     """Sensor noise of the simulated camera in 8-bit levels."""
+    wheel_scale_sigma_frac: Annotated[float, Field(ge=0.0, le=0.1)] = 0.005
+    """Std of each simulated wheel's ground travel per encoder-counted rotation, drawn
+    once per run from ``seed`` (tyre radius, load): the residual of a calibrated robot,
+    which makes wheel odometry drift systematically. 0: the wheels roll exactly."""
+    slip_sigma_frac: Annotated[float, Field(ge=0.0, le=0.5)] = 0.03
+    """Std of the simulated wheels' slip in a spin turn or a hard acceleration (a
+    fraction of the travel, correlated over ~0.3 s; a fifth of it rolling straight).
+    0: no slip (`app.sim.robot`)."""
+    encoder_tick_noise: Annotated[float, Field(ge=0.0, le=5.0)] = 0.0
+    """Std of the count error each simulated encoder tick adds (ticks; it accumulates
+    like lost or double counts). 0: exact counts."""
 
     @field_validator("world_file")
     @classmethod
@@ -329,6 +364,15 @@ class SteeringConfig(StrictModel):
     from anywhere the robot can go)."""
     local_window_m: Annotated[float, Field(ge=1.0, le=20.0)] = 6.0
     """Side of the map window around the robot that steering looks at."""
+    explored_after_s: Annotated[float, Field(ge=0.0, le=600.0)] = 10.0
+    """No reachable frontier for this long finishes exploring (`app.runtime.exploration`):
+    the robot returns to its start, stops (state ``explored``) and the map is saved."""
+    return_home: bool = True
+    """After exploring, drive back to where autonomy started (else stop where it is)."""
+    home_tolerance_m: Annotated[float, Field(gt=0.0, le=2.0)] = 0.3
+    """Back home means this close to the start."""
+    return_timeout_s: Annotated[float, Field(gt=0.0, le=3600.0)] = 180.0
+    """Not home after this long: finish where the robot is."""
 
 
 class SafetyConfig(StrictModel):
@@ -389,6 +433,9 @@ class RuntimeConfig(StrictModel):
         return value
 
     log_level: Literal["debug", "info", "warning", "error"] = "info"
+    explored_map_file: str = "explored-map.npz"
+    """Where the map is saved when exploration finishes, unless ``floornav run --map``
+    names a file (a relative path is taken from the working directory)."""
 
 
 WEB_TOKEN_PATTERN = r"^([A-Za-z0-9._~-]{16,})?$"
@@ -422,6 +469,115 @@ class ViserConfig(StrictModel):
     port: Annotated[int, Field(ge=1, le=65535)] = 8081
 
 
+MQTT_ID_PATTERN = r"^[A-Za-z0-9_-]{1,64}$"
+"""A robot id: one MQTT topic level that is also a Home Assistant object id."""
+
+
+def _default_robot_id() -> str:
+    """The host's name (up to its first dot, other characters turned to ``-``), else
+    ``floornav``."""
+    import re
+    import socket
+
+    name = re.sub(r"[^A-Za-z0-9_-]", "-", socket.gethostname().split(".")[0])[:64]
+    return name if re.fullmatch(MQTT_ID_PATTERN, name) else "floornav"
+
+
+class MqttConfig(StrictModel):
+    """The MQTT bridge (`app.bridges.mqtt`): state, telemetry and the map out, commands
+    in, under ``<topic_prefix>/<robot_id>/``."""
+
+    url: str | None = None
+    """The broker, ``mqtt://host[:1883]`` or ``mqtts://host[:8883]`` (TLS); None: the
+    bridge is off."""
+    robot_id: Annotated[str, Field(pattern=MQTT_ID_PATTERN)] = Field(
+        default_factory=_default_robot_id
+    )
+    """This robot's topic level (letters, digits, ``_``, ``-``); default: the host name."""
+    username: str = ""
+    """Empty: connect without a user name."""
+    password_file: str = ""
+    """File whose first line is the password (``~`` expanded); empty: no password."""
+    ca_file: str = ""
+    """CA certificates (PEM) that signed an ``mqtts`` broker's certificate; empty: the
+    system's."""
+    topic_prefix: Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]+(/[A-Za-z0-9_-]+)*$")] = "floornav"
+    homeassistant: bool = False
+    """Publish Home Assistant MQTT discovery messages (a state sensor, a stop button)."""
+    homeassistant_prefix: Annotated[str, Field(pattern=r"^[A-Za-z0-9_-]+$")] = "homeassistant"
+    homeassistant_start_token: bool = False
+    """Also a start button; its retained discovery message then carries the token, so
+    let only Home Assistant read ``<homeassistant_prefix>/#`` (broker ACL)."""
+    telemetry_period_s: Annotated[float, Field(ge=0.1, le=60.0)] = 0.5
+    map_period_s: Annotated[float, Field(ge=1.0, le=600.0)] = 5.0
+    """The map PNG is published at most this often, and only when it changed."""
+    keepalive_s: Annotated[int, Field(ge=5, le=600)] = 15
+    """The broker publishes the last will ``offline`` 1.5x this after the robot vanishes
+    without closing its connection (a process killed outright goes at once)."""
+    reconnect_min_s: Annotated[float, Field(gt=0.0, le=60.0)] = 0.5
+    reconnect_max_s: Annotated[float, Field(gt=0.0, le=300.0)] = 5.0
+    """Reconnect backoff doubles from min to max; each wait is 50-90 % of it, so a
+    broker that comes back is reached within ``reconnect_max_s``."""
+
+    @field_validator("url")
+    @classmethod
+    def _check_url(cls, value: str | None) -> str | None:
+        if value is None or value == "":
+            return None
+        from urllib.parse import urlsplit
+
+        try:
+            parts = urlsplit(value)
+            parts.port  # noqa: B018 (raises for a bad port)
+        except ValueError as exc:
+            raise ValueError(f"not a URL: {exc}") from None
+        if parts.scheme not in ("mqtt", "mqtts"):
+            raise ValueError("the scheme must be mqtt:// or mqtts:// (TLS)")
+        if not parts.hostname:
+            raise ValueError("the URL needs a host")
+        if parts.username is not None or parts.password is not None:
+            raise ValueError("put the user in mqtt.username and the password in a file")
+        if parts.path not in ("", "/") or parts.query or parts.fragment:
+            raise ValueError("the URL has only scheme, host and port")
+        return value
+
+    @model_validator(mode="after")
+    def _check_backoff(self) -> MqttConfig:
+        if self.reconnect_max_s < self.reconnect_min_s:
+            raise ValueError("reconnect_max_s must not be below reconnect_min_s")
+        return self
+
+    def broker(self) -> tuple[str, int, bool] | None:
+        """``(host, port, tls)`` of ``url``, or None when the bridge is off."""
+        if self.url is None:
+            return None
+        from urllib.parse import urlsplit
+
+        parts = urlsplit(self.url)
+        tls = parts.scheme == "mqtts"
+        return parts.hostname or "", parts.port or (8883 if tls else 1883), tls
+
+
+class FoxgloveConfig(StrictModel):
+    """The Foxglove live view (`app.bridges.foxglove_view`): camera, map, transforms,
+    scene and logs for the Foxglove app over its WebSocket protocol. Read-only: it offers
+    clients nothing that changes the robot."""
+
+    port: Annotated[int, Field(ge=1, le=65535)] | None = None
+    """The view's WebSocket port (Foxglove's own default is 8765); None: the view is off."""
+    host: str = "127.0.0.1"
+    """Bound like the dashboard (``[web] host``): the default keeps it on this machine,
+    ``0.0.0.0`` shows the camera to anyone who reaches the port (the Foxglove protocol
+    has no token: it cannot change the robot, but the camera is not private then)."""
+    image_period_s: Annotated[float, Field(ge=0.1, le=10.0)] = 0.2
+    """The camera with the floor overlay (JPEG at ``[web] jpeg_quality``) at most this
+    often, 10 Hz at most. Each image costs ~2 ms of CPU (overlay ~1.6, JPEG ~0.5 on a
+    640x480 frame): 5 Hz keeps the whole view under 5 % of the daemon's CPU per frame
+    with a client watching, 10 Hz (0.1) costs ~7 %. Transforms go at 10 Hz anyway."""
+    map_period_s: Annotated[float, Field(ge=0.2, le=600.0)] = 1.0
+    """The occupancy grid at most this often, when it changed (or a client subscribed)."""
+
+
 _toml_path: contextvars.ContextVar[Path | None] = contextvars.ContextVar(
     "floornav_config_path", default=None
 )
@@ -449,6 +605,8 @@ class FloornavConfig(BaseSettings):
     runtime: RuntimeConfig = RuntimeConfig()
     web: WebConfig = WebConfig()
     viser: ViserConfig = ViserConfig()
+    mqtt: MqttConfig = MqttConfig()
+    foxglove: FoxgloveConfig = FoxgloveConfig()
 
     def autostarts(self) -> bool:
         """True if the daemon starts exploring on its own (`RuntimeConfig.autostart`)."""

@@ -18,7 +18,10 @@ from app.jit import JitReport, compile_kernels
 from app.logs import setup_logging
 from app.mapping.map_files import MapFileError, export_ros_map, load_map, save_map
 from app.mapping.occupancy import SavedMap
+from app.recording.mcap_writer import McapRecorder
+from app.recording.service import RecordingService, finish_recording, start_recording
 from app.runtime import CommandRefusedError, Runtime
+from app.runtime.core import Service
 from app.web.auth import resolve_token
 
 log = logging.getLogger("floornav")
@@ -53,14 +56,19 @@ def write_report(path: Path, report: dict[str, Any]) -> None:
     write_bytes_atomic(path, (json.dumps(json_safe(report), indent=2) + "\n").encode())
 
 
-async def _serve(runtime: Runtime, duration_s: float | None, token: str) -> None:
+async def _serve(
+    runtime: Runtime, duration_s: float | None, token: str, recorder: McapRecorder | None = None
+) -> None:
     from app.bridges import bridge_services
     from app.web.server import WebService
 
     web = WebService(runtime, token=token)
+    services: list[Service] = [web, *bridge_services(runtime, token)]
+    if recorder is not None:
+        services.append(RecordingService(runtime, recorder))
     freezer = asyncio.create_task(_freeze_startup_objects(runtime))
     try:
-        await runtime.run(duration_s=duration_s, services=[web, *bridge_services(runtime, token)])
+        await runtime.run(duration_s=duration_s, services=services)
     finally:
         freezer.cancel()
 
@@ -94,10 +102,11 @@ def continue_map(runtime: Runtime, devices: Devices, saved: SavedMap, map_path: 
         devices.sim.robot.teleport(devices.sim.T_plan_odom.compose(saved.T_world_robot))
 
 
-def save_run_map(runtime: Runtime, map_path: Path) -> str | None:
-    """Save the map at exit (floornav's file and a ROS map_server copy); the path, or
-    None when there is no map (no floor calibration) or it could not be written."""
-    saved = runtime.saved_map()
+def save_run_map(runtime: Runtime, map_path: Path, saved: SavedMap | None = None) -> str | None:
+    """Save the map (``saved``, default: the runtime's at exit) as floornav's file and a
+    ROS map_server copy; the path, or None when there is no map (no floor calibration)
+    or it could not be written."""
+    saved = runtime.saved_map() if saved is None else saved
     if saved is None:
         log.warning("no map to save (no floor calibration)", extra={"event": "map_not_saved"})
         return None
@@ -139,13 +148,17 @@ def run_daemon(
     duration_s: float | None = None,
     report_path: Path | None = None,
     map_path: Path | None = None,
+    record_path: Path | None = None,
 ) -> int:
     """Run until stopped (or ``duration_s``); 0 on a clean stop, 1 if a stage crashed.
 
     With ``map_path``, the run continues the map saved there (if the file exists) and
     saves the map there on exit, with a ROS map_server copy (``.pgm`` + ``.yaml``)
     beside it. A map file that cannot be used raises `MapFileError` before any device
-    opens, and is never overwritten."""
+    opens, and is never overwritten.
+
+    With ``record_path``, the run is recorded there as MCAP (`app.recording`); the file
+    is finished (summary and index) however the run ends."""
     limit_malloc_arenas()
     setup_logging(config.runtime.log_level, json_lines=config.runtime.log_json)
     token, generated = resolve_token(config)
@@ -184,15 +197,31 @@ def run_daemon(
         gc.freeze()  # keep them out of every later one
         if saved is not None and map_path is not None:
             continue_map(runtime, devices, saved, map_path)
+        explored_path = map_path or Path(config.runtime.explored_map_file)
+
+        async def save_explored_map() -> None:
+            explored = await runtime.saved_map_while_running()
+            await asyncio.to_thread(save_run_map, runtime, explored_path, explored)
+
+        runtime.on_explored = save_explored_map
         code = 0
+        recorder = (
+            start_recording(record_path, {"config": config_source, **devices.description})
+            if record_path is not None
+            else None
+        )
         try:
-            asyncio.run(_serve(runtime, duration_s, token))
+            asyncio.run(_serve(runtime, duration_s, token, recorder))
         except KeyboardInterrupt:
             pass
         except Exception as exc:  # a stage crashed: motors are already stopped
             log.error("daemon stopped by an error: %s", exc, extra={"event": "crash"})
             code = 1
+        finally:
+            recording = finish_recording(recorder) if recorder is not None else None
         report = runtime.report()
+        if recording is not None:
+            report["recording"] = recording
         if map_path is not None:
             report["map_file"] = save_run_map(runtime, map_path)
     if report_path is not None:

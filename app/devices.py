@@ -98,6 +98,9 @@ def robot_params(config: FloornavConfig) -> RobotParams:
         deadband_pwm=drive.pwm_deadband,
         ticks_per_rev=drive.ticks_per_rev,
         radius_m=config.mapping.robot_radius_m,
+        wheel_scale_sigma_frac=config.sim.wheel_scale_sigma_frac,
+        slip_sigma_frac=config.sim.slip_sigma_frac,
+        encoder_tick_noise=config.sim.encoder_tick_noise,
     )
 
 
@@ -151,7 +154,7 @@ def open_devices(config: FloornavConfig) -> Iterator[Devices]:
         if uses_sim:
             renderer = renderer_from_config(config)
             world = renderer.world
-            robot = SimRobot(world, robot_params(config))
+            robot = SimRobot(world, robot_params(config), seed=config.sim.seed)
             robot.start()
             stack.callback(robot.close)
             sim = SimHandles(world, robot, None, None, world.start_pose)

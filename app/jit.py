@@ -26,6 +26,7 @@ from app.config import FloornavConfig
 
 if TYPE_CHECKING:
     from app.mapping.calibration import FloorCalibration
+    from app.mapping.frames import Pose2D
     from app.mapping.ground_map import GroundMapper
 
 KERNEL_MODULES = (
@@ -37,6 +38,7 @@ KERNEL_MODULES = (
     "app.mapping.occupancy",
     "app.mapping.floor_memory",
     "app.mapping.frontiers",
+    "app.mapping.scan_match",
     "app.sim.render",
 )
 """The modules that define numba kernels (tests/test_jit.py checks that no other does)."""
@@ -126,8 +128,8 @@ def compile_kernels(config: FloornavConfig) -> JitReport:
     """Compile, or load from numba's cache, every kernel the daemon calls with
     ``config``: segmentation by the configured method and by every other method that
     uses numba (the method can be changed live), the ground mapper's update (with the
-    parallax test when configured) and frontier search, and the simulator's renderer
-    when the camera is simulated. About a second from the cache."""
+    parallax test and the scan match when configured) and frontier search, and the
+    simulator's renderer when the camera is simulated. About a second from the cache."""
     start_s = time.perf_counter()
     dispatchers = numba_dispatchers()
     hits_before, misses_before = _cache_counts(dispatchers)
@@ -188,6 +190,40 @@ def _run_daemon_paths(config: FloornavConfig) -> None:
     mapper.frontiers(pose, given_up_xy=[])
     if mapper.parallax is not None:
         _run_parallax_test(mapper, floor_mask, image)
+    if mapper.localizer is not None:
+        _run_scan_match(mapper, pose)
+
+
+def _run_scan_match(mapper: GroundMapper, pose: Pose2D) -> None:
+    """The localizer's scan and match once, directly: in the daemon they wait for enough
+    map to match against, which the few warm-up frames need not make."""
+    from app.mapping.frames import FLOOR, NOT_FLOOR
+    from app.mapping.scan_match import likelihood_field, match_scan, virtual_scan
+
+    localizer = mapper.localizer
+    assert localizer is not None
+    params = localizer.params
+    patch = np.full(mapper.birdseye.grid.shape, FLOOR, np.uint8)
+    patch[: patch.shape[0] // 4] = NOT_FLOOR  # a wall across the far quarter
+    virtual_scan(
+        patch,
+        localizer.patch_grid,
+        localizer.origin_xy,
+        localizer.bearings_rad,
+        max_range_m=params.max_range_m,
+        endpoint_depth_m=params.endpoint_depth_m,
+    )
+    field = likelihood_field(
+        mapper.grid.log_odds,
+        mapper.grid.world_grid,
+        (pose.x_m, pose.y_m),
+        params.max_range_m,
+        occupied_threshold=mapper.grid.params.occupied_threshold,
+        sigma_m=params.field_sigma_m,
+    )
+    n = params.match.min_points
+    points = np.column_stack((np.full(n, 1.5), np.linspace(-0.5, 0.5, n)))
+    match_scan(field, points, pose, params.match)
 
 
 def _run_parallax_test(

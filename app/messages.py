@@ -20,6 +20,8 @@ from app.mapping.frames import GroundGrid, Pose2D
 class State(StrEnum):
     IDLE = "idle"
     RUNNING = "running"  # exploring autonomously
+    RETURNING = "returning"  # explored: driving back to where autonomy started
+    EXPLORED = "explored"  # exploration finished (back at the start); start explores again
     TELEOP = "teleop"  # a person drives (over autonomy, if it was running)
     ESTOPPED = "estopped"  # latched until reset
     CALIBRATING = "calibrating"

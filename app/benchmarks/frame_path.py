@@ -188,7 +188,8 @@ class _FramePath:
                 config.mapping.robot_radius_m,
                 config.mapping.max_range_m,
             )
-            path = path_to_xy(frontier, mapper.grid.world_grid) if frontier is not None else None
+            goal = frontier.goal if frontier is not None else None
+            path = path_to_xy(goal, mapper.grid.world_grid)
             return cells, grid, path
 
         cells, grid, path = samples.timed("map_window", window)

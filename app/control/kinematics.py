@@ -133,6 +133,17 @@ class WheelOdometry:
         self._history.clear()
         self._times.clear()
 
+    def correct(self, T_corrected_odom: Pose2D) -> None:
+        """Left-multiply a localization correction (`app.mapping.scan_match`) onto the
+        pose and its history. The odometry frame stays the map's frame, and the poses
+        of frames captured before the correction (`pose_at`) move with the pose, so
+        the map, steering and paths stay in one frame. Distance is not changed."""
+        self.pose = T_corrected_odom.compose(self.pose)
+        self._history = deque(
+            OdometrySample(sample.time_s, T_corrected_odom.compose(sample.pose), sample.distance_m)
+            for sample in self._history
+        )
+
     def update(self, left_ticks: int, right_ticks: int, time_s: float) -> Pose2D:
         if self._last_ticks is not None:
             dl = _tick_delta(left_ticks, self._last_ticks[0]) * self.meters_per_tick

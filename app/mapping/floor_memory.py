@@ -150,6 +150,9 @@ class FloorMemory:
         self.params = params if params is not None else FloorMemoryParams()
         n = world_grid.rows * world_grid.cols
         self.confirmed = np.zeros(world_grid.shape, dtype=np.uint8)
+        self.standing = np.zeros(world_grid.shape, dtype=np.uint8)
+        """1 where parallax last saw something standing (not kept in map files): the
+        frontier search does not probe those edges again."""
         self._colour = np.zeros((n, 3), dtype=np.float32)
         self._sightings = np.zeros(n, dtype=np.uint16)
         self._appearance_lab = np.zeros((0, 3), dtype=np.float32)
@@ -200,6 +203,7 @@ class FloorMemory:
         flat = self.confirmed.reshape(-1)
         new = cells[flat[cells] == 0]
         flat[new] = 1
+        self.standing.reshape(-1)[cells] = 0
         seen = new[self._sightings[new] > 0]
         if seen.size:
             self._learn(bgr_to_scaled_lab(self._colour[seen]))
@@ -230,6 +234,7 @@ class FloorMemory:
         if cells.size == 0:
             return
         self.confirmed.reshape(-1)[cells] = 0
+        self.standing.reshape(-1)[cells] = 1
         seen = cells[self._sightings[cells] > 0]
         if seen.size == 0 or self._appearance_lab.shape[0] == 0:
             return
@@ -314,6 +319,7 @@ class FloorMemory:
         if (table[:, 3] <= 0).any():
             raise ValueError("floor appearances: every cell count must be > 0")
         self.confirmed[...] = state.confirmed != 0
+        self.standing.fill(0)
         self._appearance_lab = table[:, :3].copy()
         self._appearance_cells = table[:, 3].astype(np.float64)
         self._colour.fill(0.0)
@@ -321,6 +327,7 @@ class FloorMemory:
 
     def reset(self) -> None:
         self.confirmed.fill(0)
+        self.standing.fill(0)
         self._colour.fill(0.0)
         self._sightings.fill(0)
         self._appearance_lab = np.zeros((0, 3), dtype=np.float32)

@@ -28,6 +28,18 @@ is the nearest reachable frontier; a positive penalty trades distance for larger
 The bearing error is the angle between the robot's heading (when given) and the straight
 line to the representative cell: a robot that turns slowly prefers what lies ahead.
 The goal's cell is that cluster's representative cell, and the goal carries the path to it.
+
+**Edge probes.** A floor the colour method has not met (a rug, the kitchen's tiles past a
+threshold) ends the floor in every frame, and the map keeps its edge as a wall: the
+search then finds no reachable frontier although the home goes on. Given ``probe_cells``
+(occupied cells that geometry has not seen standing, from the caller), the search, when
+no frontier is reachable, sends the robot to look at such an edge: the *probe targets*
+are probe cells with an unknown 4-neighbour (an edge with nothing known behind it), in
+8-connected groups of at least ``min_cluster_cells``; the goal is the reachable cell
+nearest by path within ``inflation_radius_m`` + two cells of a target. Driving straight
+at it gives the motion-parallax test its baseline: a flat edge becomes known floor (and
+its colour learned), a standing one is marked so, and the caller leaves it out of
+``probe_cells`` from then on. The goal's ``probe`` is True.
 """
 
 from __future__ import annotations
@@ -144,6 +156,7 @@ class FrontierGoal:
     path_length_m : float, octile path length from the robot's cell.
     score : float, see the module docstring.
     path_cells : (n, 2) int64 (row, col) from the robot's cell to ``cell``, inclusive.
+    probe : the goal looks at an edge rather than a frontier (module docstring).
     """
 
     cluster_index: int
@@ -152,6 +165,7 @@ class FrontierGoal:
     path_length_m: float
     score: float
     path_cells: NDArray[np.int64] = field(repr=False)
+    probe: bool = False
 
 
 @dataclass(frozen=True, eq=False)
@@ -167,6 +181,8 @@ class FrontierSearch:
         ``REASON_NO_REACHABLE``, ``REASON_OUTSIDE_MAP``.
     distance_m : (rows, cols) float64 path length from the robot's cell, inf where not
         reachable (all inf when the robot is outside the map).
+    parent : (rows * cols,) int64 predecessors of the paths behind ``distance_m``
+        (`trace_path`; `path_to_point` reads them).
     """
 
     clusters: tuple[FrontierCluster, ...]
@@ -174,6 +190,7 @@ class FrontierSearch:
     goal: FrontierGoal | None
     reason: str
     distance_m: NDArray[np.float64] = field(repr=False)
+    parent: NDArray[np.int64] = field(repr=False)
 
 
 def check_classes(cells: NDArray[np.int8], grid: GroundGrid) -> None:
@@ -350,6 +367,7 @@ def find_frontiers(
     params: FrontierParams | None = None,
     *,
     robot_heading_rad: float | None = None,
+    probe_cells: NDArray[np.bool_] | None = None,
 ) -> FrontierSearch:
     """Frontier clusters of a classified grid and the goal to explore next.
 
@@ -361,6 +379,8 @@ def find_frontiers(
     robot_xy_world : (x, y) metres, the robot's position (``T_world_robot.x_m, .y_m``).
     params : FrontierParams
     robot_heading_rad : the robot's heading in the world frame, for the turn penalty.
+    probe_cells : (rows, cols) bool, occupied cells whose edge may be probed when no
+        frontier is reachable (module docstring); None: no probes.
 
     Returns
     -------
@@ -424,15 +444,20 @@ def find_frontiers(
         clusters.append(FrontierCluster(len(clusters), rc, centroid, rep_cell, rep_xy, length))
 
     def result(goal: FrontierGoal | None, reason: str) -> FrontierSearch:
-        return FrontierSearch(tuple(clusters), dropped, goal, reason, distance)
+        return FrontierSearch(tuple(clusters), dropped, goal, reason, distance, parent)
 
     if not on_map:
         return result(None, REASON_OUTSIDE_MAP)
-    if not clusters:
-        return result(None, REASON_NO_FRONTIER)
     reachable = [c for c in clusters if c.representative_cell is not None]
-    if not reachable:
-        return result(None, REASON_NO_REACHABLE)
+    if not reachable or not clusters:
+        probe = (
+            None
+            if probe_cells is None
+            else _probe_goal(cells, grid, probe_cells, distance, parent, params)
+        )
+        if probe is not None:
+            return result(probe, "")
+        return result(None, REASON_NO_REACHABLE if clusters else REASON_NO_FRONTIER)
 
     def score(c: FrontierCluster) -> float:
         value = c.path_length_m + params.size_penalty_m * params.min_cluster_cells / c.size_cells
@@ -454,3 +479,96 @@ def find_frontiers(
         path_cells=trace_path(parent, grid.cols, chosen.representative_cell),
     )
     return result(goal, "")
+
+
+def _probe_goal(
+    cells: NDArray[np.int8],
+    grid: GroundGrid,
+    probe_cells: NDArray[np.bool_],
+    distance: NDArray[np.float64],
+    parent: NDArray[np.int64],
+    params: FrontierParams,
+) -> FrontierGoal | None:
+    """The nearest reachable cell from which to look at an edge (module docstring)."""
+    if probe_cells.shape != cells.shape:
+        raise ValueError(f"probe_cells: expected shape {cells.shape}, got {probe_cells.shape}")
+    edge = probe_cells & (cells == OCCUPIED)
+    unknown = np.pad(cells == UNKNOWN, 1, constant_values=False)
+    cols = cells.shape[1]
+    behind = unknown[:-2, 1:-1] | unknown[2:, 1:-1] | unknown[1:-1, :-2] | unknown[1:-1, 2:]
+    targets = edge & behind
+    labels, n_labels = ndimage.label(targets, structure=np.ones((3, 3), dtype=bool))
+    if n_labels == 0:
+        return None
+    sizes = np.bincount(labels.ravel(), minlength=n_labels + 1)
+    kept = sizes >= params.min_cluster_cells
+    kept[0] = False
+    targets = kept[labels]
+    if not targets.any():
+        return None
+    reach_cells = params.inflation_radius_m / grid.cell_m + 2.0
+    near = inflate_obstacles(targets, reach_cells)
+    # Not where the robot stands: driving there gives no view of the edge.
+    candidates = near & np.isfinite(distance) & (distance >= params.exclude_radius_m)
+    if not candidates.any():
+        return None
+    masked = np.where(candidates, distance, np.inf)
+    flat = int(np.argmin(masked))
+    cell = (flat // cols, flat % cols)
+    x, y = grid.cell_centers()
+    return FrontierGoal(
+        cluster_index=-1,
+        cell=cell,
+        xy=(float(x[cell]), float(y[cell])),
+        path_length_m=float(distance[cell]),
+        score=float(distance[cell]),
+        path_cells=trace_path(parent, cols, cell),
+        probe=True,
+    )
+
+
+def path_to_point(
+    search: FrontierSearch,
+    grid: GroundGrid,
+    target_xy: tuple[float, float],
+    tolerance_m: float,
+) -> FrontierGoal | None:
+    """The shortest path in ``search`` (from the robot's cell, over the same traversable
+    cells as the frontier goals) to the reachable cell nearest ``target_xy`` within
+    ``tolerance_m``, as a goal (``cluster_index`` -1, ``score`` its distance to the
+    target), or None when no cell within the tolerance is reachable.
+
+    Why nearest and not exact: the target (the robot's start, say) may have become
+    non-traversable in the map since (an obstacle's inflation reaching over it); any cell
+    within the tolerance will do.
+
+    Examples
+    --------
+    >>> g = GroundGrid(1.0, 0.0, 0.1, 3, 3)
+    >>> cells = np.zeros((3, 3), np.int8)
+    >>> s = find_frontiers(cells, g, (0.95, -0.05), FrontierParams(robot_radius_m=0.05,
+    ...     inflation_radius_m=0.05, exclude_radius_m=0.05, min_cluster_cells=1))
+    >>> path_to_point(s, g, (0.75, -0.25), 0.01).cell
+    (2, 2)
+    """
+    check_grid(grid)
+    target = check_xy(target_xy, "target_xy")
+    if not (math.isfinite(tolerance_m) and tolerance_m >= 0):
+        raise ValueError(f"tolerance_m: must be finite and >= 0, got {tolerance_m}")
+    near = footprint_mask(grid, target, max(tolerance_m, grid.cell_m / 2))
+    candidates = near & np.isfinite(search.distance_m)
+    if not candidates.any():
+        return None
+    x, y = grid.cell_centers()
+    offset = np.hypot(x - target[0], y - target[1])
+    offset[~candidates] = np.inf
+    flat = int(np.argmin(offset))
+    cell = (flat // grid.cols, flat % grid.cols)
+    return FrontierGoal(
+        cluster_index=-1,
+        cell=cell,
+        xy=(float(x[cell]), float(y[cell])),
+        path_length_m=float(search.distance_m[cell]),
+        score=float(offset[cell]),
+        path_cells=trace_path(search.parent, grid.cols, cell),
+    )

@@ -5,6 +5,7 @@ calibration and supplies poses and times."""
 from __future__ import annotations
 
 import math
+import time
 from collections import deque
 from collections.abc import Sequence
 from dataclasses import dataclass, replace
@@ -17,7 +18,13 @@ from app.config import CameraConfig, MappingConfig
 from app.mapping.calibration import FloorCalibration
 from app.mapping.floor_memory import FloorMemory, patch_world_index
 from app.mapping.frames import FLOOR, NOT_FLOOR, GroundGrid, Pose2D
-from app.mapping.frontiers import FrontierParams, FrontierSearch, find_frontiers, footprint_mask
+from app.mapping.frontiers import (
+    FrontierParams,
+    FrontierSearch,
+    find_frontiers,
+    footprint_mask,
+    inflate_obstacles,
+)
 from app.mapping.ipm import BirdseyeMap, birdseye_floor_patch, build_birdseye_map
 from app.mapping.occupancy import (
     FREE,
@@ -27,6 +34,7 @@ from app.mapping.occupancy import (
     SavedMap,
     UpdateSummary,
 )
+from app.mapping.scan_match import LocalizerParams, MatchParams, ScanLocalizer, view_bearings
 from app.perception.planar import ParallaxResult, PlanarParams, confirm_floor, view_homography
 
 _NO_SECOND_MAP = np.empty((0, 0), dtype=np.uint16)
@@ -68,6 +76,27 @@ def occupancy_params(mapping: MappingConfig) -> OccupancyParams:
     )
 
 
+def localizer_params(mapping: MappingConfig) -> LocalizerParams:
+    """The scan matcher for the configured map: a field blurred by one map cell,
+    lattices of half and a fifth of a cell, endpoints half the obstacle band deep."""
+    cell = mapping.grid_cell_m
+    return LocalizerParams(
+        period_s=mapping.scan_match_period_s,
+        endpoint_depth_m=mapping.obstacle_band_m / 2,
+        gain_frac=mapping.scan_match_gain_frac,
+        max_step_m=mapping.scan_match_max_step_m,
+        max_step_rad=mapping.scan_match_max_step_rad,
+        max_range_m=mapping.max_range_m,
+        field_sigma_m=cell,
+        match=MatchParams(
+            window_m=mapping.scan_match_window_m,
+            window_rad=mapping.scan_match_window_rad,
+            coarse_step_m=cell / 2,
+            fine_step_m=cell / 5,
+        ),
+    )
+
+
 def frontier_params(mapping: MappingConfig) -> FrontierParams:
     return FrontierParams(
         min_cluster_cells=mapping.frontier_min_cells,
@@ -87,6 +116,19 @@ class MapUpdate:
     summary: UpdateSummary
     corrected_cells: int = 0
     """Patch cells the colour method called not-floor that the memory knows are floor."""
+    correction: Pose2D | None = None
+    """``T_corrected_odom`` when the frame's scan match corrected the pose (the frame was
+    fused at ``correction.compose(T_world_robot)``): left-multiply it onto odometry."""
+    match_s: float | None = None
+    """Seconds the frame's scan match took (None: none ran)."""
+
+
+PROBE_STANDING_REACH_M = 0.3
+"""An occupied cell this close to one parallax saw standing is a real edge: not probed."""
+PROBE_GIVEN_UP_RADIUS_M = 0.8
+"""Edges within this of a given-up goal are not probed again (`GroundMapper.frontiers`):
+the probe stood within the inflation radius plus two cells of its edge, and an edge
+seen from there for the goal's patience has had its look."""
 
 
 def blind_zone_cells(birdseye: BirdseyeMap, half_width_m: float) -> NDArray[np.bool_]:
@@ -143,6 +185,17 @@ class GroundMapper:
         """Frames whose floor was tested by parallax (for the report)."""
         self._parallax_due_s = -math.inf
         self._confirmed: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
+        grid = self.birdseye.grid
+        self.localizer = (
+            ScanLocalizer(
+                localizer_params(mapping),
+                grid,
+                self.camera_xy_robot,
+                view_bearings(self.birdseye.visible, grid, self.camera_xy_robot),
+            )
+            if mapping.scan_matching
+            else None
+        )
 
     def update(
         self,
@@ -155,7 +208,8 @@ class GroundMapper:
         previous call's pose fades the older evidence; time alone never does). With the
         frame's ``image`` (BGR or grey), the floor is first extended where motion parallax
         against an earlier frame confirms it (`app.perception.planar`); ``now_s`` paces
-        that test."""
+        that test and the scan match, which may correct ``T_world_robot`` before the
+        frame is fused (`MapUpdate.correction`)."""
         tested: ParallaxResult | None = None
         if image is not None and self.parallax is not None:
             floor_mask, tested = self._confirm_by_parallax(floor_mask, image, T_world_robot, now_s)
@@ -163,6 +217,13 @@ class GroundMapper:
         # The thesis's safe-zone assumption: the strip just ahead of the robot, below the
         # camera's view, is free floor.
         patch[self.blind_zone] = FLOOR
+        correction: Pose2D | None = None
+        match_s: float | None = None
+        if self.localizer is not None and self.localizer.due(now_s):
+            correction, match_s = self._localize(patch, tested, T_world_robot, now_s)
+            if correction is not None:
+                T_world_robot = correction.compose(T_world_robot)
+                self._move_views(correction)
         memory = self.memory
         index = patch_world_index(self.birdseye.grid, self.grid.world_grid, T_world_robot)
         if image is not None and image.ndim == 3:
@@ -190,7 +251,55 @@ class GroundMapper:
         memory.drive_over(T_world_robot, self.mapping.robot_radius_m)
         corrected = memory.correct_patch(patch, index)
         summary = self.grid.update(patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot)
-        return MapUpdate(patch, summary, corrected)
+        return MapUpdate(patch, summary, corrected, correction, match_s)
+
+    def _localize(
+        self,
+        patch: NDArray[np.uint8],
+        tested: ParallaxResult | None,
+        T_world_robot: Pose2D,
+        now_s: float,
+    ) -> tuple[Pose2D | None, float | None]:
+        """The frame's scan match (`ScanLocalizer.localize`): ``(T_corrected_odom or
+        None, seconds)``, or (None, None) when none ran. It reads a copy of the patch as
+        it will be fused (what parallax found standing is not floor, floor the memory
+        knows is floor), against the map before this frame's evidence goes in."""
+        assert self.localizer is not None
+        start_s = time.perf_counter()
+        scan_patch = patch.copy()
+        if tested is not None:
+            scan_patch[birdseye_floor_patch(tested.standing, self.birdseye) == FLOOR] = NOT_FLOOR
+        index = patch_world_index(self.birdseye.grid, self.grid.world_grid, T_world_robot)
+        self.memory.correct_patch(scan_patch, index)
+        found = self.localizer.localize(
+            scan_patch,
+            self.grid.log_odds,
+            self.grid.world_grid,
+            (self.grid.params.free_threshold, self.grid.params.occupied_threshold),
+            T_world_robot,
+            now_s,
+        )
+        if found is None:
+            return None, None
+        return found.T_corrected_odom, time.perf_counter() - start_s
+
+    def _move_views(self, T_corrected_odom: Pose2D) -> None:
+        """Move the poses of the frames kept for the parallax test with a correction, as
+        odometry's history moves: the relative poses between frames stay odometry's."""
+
+        def moved(pose: tuple[float, float, float]) -> tuple[float, float, float]:
+            p = T_corrected_odom.compose(Pose2D(*pose))
+            return (p.x_m, p.y_m, p.theta_rad)
+
+        views = [
+            (gray, moved(pose), _camera_xy(moved(pose), self.camera_xy_robot))
+            for gray, pose, _ in self._views
+        ]
+        self._views.clear()
+        self._views.extend(views)
+        if self._confirmed is not None:
+            added, then, at_s = self._confirmed
+            self._confirmed = (added, moved(then), at_s)
 
     def snapshot(self) -> SavedMap:
         """A read-only copy of the map for saving (`app.mapping.map_files.save_map`); call
@@ -281,11 +390,26 @@ class GroundMapper:
         e.g. floor under where it started), so they make no frontier."""
         cells = self.grid.classify()
         world = self.grid.world_grid
+        probe_cells = None
+        if self.mapping.frontier_probe_edges:
+            # Parallax marks what stands beyond an edge (the wall above its foot): the
+            # edge's own cells lie up to a band's width before it.
+            standing = inflate_obstacles(
+                self.memory.standing != 0, PROBE_STANDING_REACH_M / world.cell_m
+            )
+            probe_cells = ~standing
         for xy in given_up_xy:
             near = footprint_mask(world, xy, given_up_radius_m)
             cells[near & (cells == UNKNOWN)] = FREE
+            if probe_cells is not None:
+                # A probe given up: its edge is not looked at again.
+                probe_cells &= ~footprint_mask(world, xy, PROBE_GIVEN_UP_RADIUS_M)
         return find_frontiers(
-            cells, world, (T_world_robot.x_m, T_world_robot.y_m), self.frontier_params
+            cells,
+            world,
+            (T_world_robot.x_m, T_world_robot.y_m),
+            self.frontier_params,
+            probe_cells=probe_cells,
         )
 
 

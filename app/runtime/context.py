@@ -19,6 +19,7 @@ from app.devices import Devices
 from app.hardware.serial_link import UnoLink
 from app.mapping.ground_map import GroundMapper
 from app.messages import DriveMsg, FloorMsg, FrameMsg, MapMsg, WorldMapMsg
+from app.runtime.pose_error import PoseErrorTracker
 from app.runtime.stops import ProtectiveStop, StopEvent, StopPolicy
 from app.runtime.telemetry import Counters, StageClock
 
@@ -53,3 +54,9 @@ class Shared:
     drives: LatestSlot[DriveMsg] = field(default_factory=lambda: LatestSlot("drives"))
     wake_drive: asyncio.Event = field(default_factory=asyncio.Event)
     started_s: float | None = None
+    pose_error: PoseErrorTracker | None = field(init=False, default=None)
+    """The pose estimate against the simulator's truth (None on hardware)."""
+
+    def __post_init__(self) -> None:
+        if self.devices.sim is not None:
+            self.pose_error = PoseErrorTracker(self.devices.sim)

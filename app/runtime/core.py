@@ -49,9 +49,11 @@ from app.messages import DriveMsg, FloorMsg, FrameMsg, MapMsg, State, Transition
 from app.perception.pipeline import FloorSegmenter
 from app.runtime.context import Shared
 from app.runtime.drive import DriveStage
+from app.runtime.exploration import Phase, PhaseChange
 from app.runtime.health import HealthStage
 from app.runtime.stages import (
     CaptureStage,
+    CoverageStage,
     MappingStage,
     OdometryStage,
     PerceptionStage,
@@ -126,6 +128,11 @@ class Runtime:
         self.capture = CaptureStage(self.shared)
         self.perception = PerceptionStage(self.shared, segmenter_factory)
         self.mapping = MappingStage(self.shared)
+        self.mapping.on_phase = self._on_phase
+        self.coverage = CoverageStage(self.shared)
+        self.on_explored: Callable[[], Awaitable[object]] | None = None
+        """Awaited when exploration finishes (the daemon saves the map)."""
+        self._explored_task: asyncio.Task[None] | None = None
         self.steering_stage = SteeringStage(self.shared, self.steering)
         self.drive = DriveStage(self.shared, RateLimiter(config.drive))
         self.workers = (self.perception.worker, self.mapping.worker, self.steering_stage.worker)
@@ -250,6 +257,10 @@ class Runtime:
                 f"fault latched: {shared.policy.latched.reason}; reset it first"
             )
         if not shared.autonomous:
+            exploration = self.mapping.exploration
+            exploration.set_home(shared.odometry.pose)
+            if exploration.phase is Phase.EXPLORED:
+                exploration.restart()
             shared.autonomous = True
             self.steering.reset()
             log.info("autonomy started", extra={"event": "start"})
@@ -434,6 +445,12 @@ class Runtime:
         mapper = self.shared.mapper
         return mapper.snapshot() if mapper is not None else None
 
+    async def saved_map_while_running(self) -> SavedMap | None:
+        """`saved_map` while the stages run: the copy is taken in the mapping thread,
+        between two updates."""
+        mapper = self.shared.mapper
+        return await self.mapping.worker.run(mapper.snapshot) if mapper is not None else None
+
     def request_shutdown(self, reason: str = "requested") -> None:
         if not self._shutdown.is_set():
             self._shutdown_reason = reason
@@ -470,6 +487,32 @@ class Runtime:
         shared.wake_drive.set()
         self._update_state(event.reason)
 
+    def _on_phase(self, change: PhaseChange) -> None:
+        """The mapping stage saw exploration's phase change (in the loop's thread)."""
+        shared = self.shared
+        log.info(
+            "exploration %s: %s",
+            change.phase.value,
+            change.reason,
+            extra={"event": "exploration", "phase": change.phase.value},
+        )
+        if change.phase is Phase.EXPLORED:
+            shared.autonomous = False
+            shared.mux.clear_autonomy()
+            shared.wake_drive.set()
+            if self.on_explored is not None and self._explored_task is None:
+                self._explored_task = asyncio.create_task(self._finish_exploration())
+        self._update_state(change.reason)
+
+    async def _finish_exploration(self) -> None:
+        assert self.on_explored is not None
+        try:
+            await self.on_explored()
+        except Exception:  # saving is not driving: say so and go on
+            log.exception("after exploring: saving the map failed", extra={"event": "explored"})
+        finally:
+            self._explored_task = None
+
     def _tick(self, reason: str) -> str:
         self._update_state(reason)
         self.rss.sample(self.elapsed_s())
@@ -489,9 +532,10 @@ class Runtime:
         hold = shared.policy.holding(now)
         if hold is not None and (shared.autonomous or STOP_RULES[hold.cause].device):
             return State.PROTECTIVE_STOP
+        phase = self.mapping.exploration.phase
         if shared.autonomous:
-            return State.RUNNING
-        return State.IDLE
+            return State.RETURNING if phase is Phase.RETURNING else State.RUNNING
+        return State.EXPLORED if phase is Phase.EXPLORED else State.IDLE
 
     def _update_state(self, reason: str) -> None:
         new = self._derive_state()
@@ -546,6 +590,7 @@ class Runtime:
                         "steering": self.steering_stage.run(),
                         "drive": self.drive.run(),
                         "odometry": OdometryStage(shared).run(),
+                        "coverage": self.coverage.run(),
                         "health": self.health.run(),
                         "loop_lag": self.loop_lag.run(),
                     }

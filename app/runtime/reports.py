@@ -9,6 +9,7 @@ import os
 import statistics
 from typing import TYPE_CHECKING, Any
 
+from app.runtime.service_status import service_status
 from app.runtime.telemetry import newest, percentiles_ms
 
 if TYPE_CHECKING:
@@ -33,6 +34,7 @@ def status(rt: Runtime) -> dict[str, Any]:
     return {
         "state": rt.state.value,
         "autonomous": shared.autonomous,
+        "exploration": exploration_status(rt),
         "estop": shared.mux.estop_reason,
         "fault": latched.reason if latched is not None else None,
         "devices_problem": device_problem,
@@ -96,6 +98,8 @@ def status(rt: Runtime) -> dict[str, Any]:
         "stops_by_cause": dict(shared.policy.stops_by_cause),
         "counters": dict(shared.counters.__dict__),
         "estops": shared.mux.estops,
+        # The MQTT bridge (`app.bridges.mqtt`): connected / connecting / stopped, or off.
+        "mqtt": service_status(rt, "mqtt") or {"state": "off"},
         "transitions": [
             {
                 "t": round(t.wall_time, 3),
@@ -105,6 +109,24 @@ def status(rt: Runtime) -> dict[str, Any]:
             }
             for t in rt.transitions[-10:]
         ],
+    }
+
+
+def exploration_status(rt: Runtime) -> dict[str, Any]:
+    """The exploration's phase (``exploring``, ``returning``, ``explored``), why, and
+    the way home."""
+    exploration = rt.mapping.exploration
+    home = exploration.home_distance_m(rt.shared.odometry.pose)
+    started = rt.shared.started_s
+    at = exploration.explored_at_s
+    return {
+        "phase": exploration.phase.value,
+        "reason": exploration.reason,
+        "home_xy": list(exploration.home_xy) if exploration.home_xy is not None else None,
+        "home_distance_m": round(home, 3) if home is not None else None,
+        "explored_after_s": round(at - started, 1)
+        if at is not None and started is not None
+        else None,
     }
 
 
@@ -156,8 +178,11 @@ def report(rt: Runtime) -> dict[str, Any]:
         "coverage_reachable": reachable,
         "map_iou": truth["map_iou"] if truth else None,
         "map_truth": truth,
+        "pose_error_m": shared.pose_error.summary() if shared.pose_error is not None else None,
         "distance_m": round(shared.odometry.distance_m, 3),
         "home_distance_m": round(math.hypot(pose.x_m, pose.y_m), 3),
+        "exploration": exploration_status(rt),
+        "time_to_coverage_s": rt.coverage.clock.summary() if truth is not None else None,
         "world": sim.world.name if sim is not None else None,
         "seed": shared.config.sim.seed if sim is not None else None,
         "floor_memory": None
@@ -169,6 +194,9 @@ def report(rt: Runtime) -> dict[str, Any]:
             "appearances": len(mapper.memory.appearances()),
             "unlearned": mapper.memory.unlearned,
         },
+        "scan_match": None
+        if mapper is None or mapper.localizer is None
+        else {"attempts": mapper.localizer.attempts, "applied": mapper.localizer.applied},
         "estops": shared.mux.estops,
         "faults": counters.faults,
         "fault_latched": policy.latched.as_dict(now) if policy.latched else None,

@@ -21,8 +21,8 @@ from app.channels import SlotReader
 from app.config import PerceptionConfig
 from app.control.steering import Steering
 from app.mapping.frames import FLOOR, GroundGrid, Pose2D
-from app.mapping.frontiers import FrontierSearch
-from app.mapping.ground_map import GroundMapper
+from app.mapping.frontiers import FrontierGoal, FrontierSearch, path_to_point
+from app.mapping.ground_map import GroundMapper, MapUpdate
 from app.mapping.occupancy import classify_log_odds
 from app.messages import FloorMsg, FrameMsg, MapMsg, WorldMapMsg
 from app.perception.image_checks import ImageError
@@ -30,6 +30,7 @@ from app.perception.pipeline import FloorResult
 from app.perception.safe_zone import SafeZoneError
 from app.runtime.context import Shared
 from app.runtime.drive import zone_not_floor
+from app.runtime.exploration import CoverageClock, Exploration, Phase, PhaseChange
 from app.runtime.telemetry import FloatWindow
 from app.workers import StageWorker
 
@@ -111,11 +112,11 @@ def map_window(
     return cells, window
 
 
-def path_to_xy(search: FrontierSearch, grid: GroundGrid) -> NDArray[np.float64] | None:
-    """The path to the search's goal as (n, 2) world points, or None without a goal."""
-    if search.goal is None:
+def path_to_xy(goal: FrontierGoal | None, grid: GroundGrid) -> NDArray[np.float64] | None:
+    """The path to a goal as (n, 2) world points, or None without a goal."""
+    if goal is None:
         return None
-    rc = search.goal.path_cells
+    rc = goal.path_cells
     xs = grid.x_max_m - (rc[:, 0] + 0.5) * grid.cell_m
     ys = grid.y_max_m - (rc[:, 1] + 0.5) * grid.cell_m
     return np.column_stack((xs, ys))
@@ -199,6 +200,10 @@ class PerceptionStage:
             )
 
 
+PROBE_ARRIVED_M = 0.25
+"""An edge probe's goal this close is reached (`MappingStage._track_goal`)."""
+
+
 class MappingStage:
     """``floors`` -> occupancy grid -> ``maps`` (the window steering needs, every frame)
     and ``world_maps`` (the whole map, at most 2 Hz), in its own thread. Runs the
@@ -213,11 +218,27 @@ class MappingStage:
         self._goal_since: tuple[tuple[float, float], float] | None = None
         self._frontier_due_s = 0.0
         self._snapshot_due_s = 0.0
+        self.exploration = self._new_exploration()
+        self.home_goal: FrontierGoal | None = None
+        """While returning: the path home from the newest frontier search."""
+        self.on_phase: Callable[[PhaseChange], None] | None = None
+        """Told every exploration phase change (the runtime stops and saves the map)."""
+
+    def _new_exploration(self) -> Exploration:
+        steering = self.shared.config.steering
+        return Exploration(
+            explored_after_s=steering.explored_after_s,
+            home_tolerance_m=steering.home_tolerance_m,
+            return_home=steering.return_home,
+            return_timeout_s=steering.return_timeout_s,
+        )
 
     def forget_frontier(self) -> None:
         """After a new calibration or map: the old search means nothing."""
         self.frontier = None
         self._goal_since = None
+        self.home_goal = None
+        self.exploration = self._new_exploration()
 
     def step(
         self,
@@ -227,17 +248,28 @@ class MappingStage:
         now_pose: Pose2D,
         frontier_due: bool,
         snapshot_due: bool,
-    ) -> tuple[MapMsg, FrontierSearch | None, WorldMapMsg | None]:
+        home_xy: tuple[float, float] | None = None,
+        home_goal: FrontierGoal | None = None,
+    ) -> tuple[MapMsg, FrontierSearch | None, WorldMapMsg | None, MapUpdate, FrontierGoal | None]:
         """In the mapping thread: fuse the frame, maybe search frontiers, cut the window,
-        maybe copy the whole map for readers."""
+        maybe copy the whole map for readers. With ``home_xy`` (returning home) the goal
+        is the way there: found anew with each search, else ``home_goal`` (the last)."""
         config = self.shared.config
         update = mapper.update(floor.floor_mask, pose, floor.capture_s, floor.image)
+        if update.correction is not None:
+            # The frame went into the map at the corrected pose; odometry follows in `run`.
+            pose = update.correction.compose(pose)
+            now_pose = update.correction.compose(now_pose)
         search = (
             mapper.frontiers(now_pose, given_up_xy=self.given_up_goals) if frontier_due else None
         )
         frontier = search if search is not None else self.frontier
         params = mapper.grid.params
         world = mapper.grid.world_grid
+        if home_xy is None:
+            home_goal = None
+        elif search is not None:
+            home_goal = path_to_point(search, world, home_xy, config.steering.home_tolerance_m / 2)
         cells, window = map_window(
             mapper.grid.log_odds,
             world,
@@ -253,9 +285,12 @@ class MappingStage:
             config.mapping.max_range_m,
         )
         goal = frontier.goal if frontier is not None else None
-        goal_xy = goal.xy if goal is not None else None
-        path = path_to_xy(frontier, world) if frontier is not None else None
         reason = frontier.reason if frontier is not None else "not searched yet"
+        if home_xy is not None:
+            goal = home_goal
+            reason = "returning to the start" if goal is not None else "no path to the start"
+        goal_xy = goal.xy if goal is not None else None
+        path = path_to_xy(goal, world)
         done = time.monotonic()
         msg = MapMsg(
             seq=floor.seq,
@@ -284,7 +319,7 @@ class MappingStage:
                 frontier_reason=reason,
                 frontier_clusters=len(frontier.clusters) if frontier is not None else 0,
             )
-        return msg, search, snapshot
+        return msg, search, snapshot, update, home_goal
 
     async def run(self) -> None:
         shared = self.shared
@@ -301,7 +336,9 @@ class MappingStage:
             snapshot_due = start >= self._snapshot_due_s
             if snapshot_due:
                 self._snapshot_due_s = start + WORLD_MAP_PERIOD_S
-            msg, search, snapshot = await self.worker.run(
+            exploration = self.exploration
+            returning = exploration.phase is Phase.RETURNING and shared.autonomous
+            msg, search, snapshot, update, home_goal = await self.worker.run(
                 self.step,
                 mapper,
                 floor,
@@ -309,13 +346,29 @@ class MappingStage:
                 shared.odometry.pose,
                 frontier_due,
                 snapshot_due,
+                exploration.home_xy if returning else None,
+                self.home_goal,
             )
             if mapper is not shared.mapper:
                 continue  # recalibrated or replaced meanwhile: this map is gone
+            if update.correction is not None:
+                shared.odometry.correct(update.correction)  # here: odometry is the loop's
+            if update.match_s is not None:
+                shared.stages.add("scan_match", update.match_s)
             if search is not None:
                 self.frontier = search
+                self.home_goal = home_goal
                 if shared.autonomous and not shared.mux.estopped:
                     self._track_goal(search, start)
+                    if exploration is self.exploration:
+                        change = exploration.observe(
+                            search,
+                            start,
+                            shared.odometry.pose,
+                            home_reachable=home_goal is not None or not returning,
+                        )
+                        if change is not None and self.on_phase is not None:
+                            self.on_phase(change)
                 else:
                     self._goal_since = None  # patience counts only while exploring
             shared.stages.add("mapping", shared.clock() - start)
@@ -332,6 +385,18 @@ class MappingStage:
         goal = search.goal
         patience_s = self.shared.config.steering.goal_patience_s
         if goal is None:
+            self._goal_since = None
+            return
+        pose = self.shared.odometry.pose
+        if goal.probe and math.dist(goal.xy, (pose.x_m, pose.y_m)) < PROBE_ARRIVED_M:
+            # An edge probe has had its look on the way there (parallax needs motion).
+            self.given_up_goals.append(goal.xy)
+            log.info(
+                "edge probe at (%.2f, %.2f) done",
+                goal.xy[0],
+                goal.xy[1],
+                extra={"event": "probe_done"},
+            )
             self._goal_since = None
             return
         if self._goal_since is None or math.dist(goal.xy, self._goal_since[0]) > 0.3:
@@ -401,3 +466,45 @@ class OdometryStage:
         async for telemetry in link.telemetry_updates():
             data = telemetry.data
             self.shared.odometry.update(data.encoder_left, data.encoder_right, telemetry.received_s)
+            if self.shared.pose_error is not None:
+                # Now, while the truth is of the same instant as the encoder counts.
+                self.shared.pose_error.sample(self.shared.odometry.pose, telemetry.received_s)
+
+
+class CoverageStage:
+    """On the simulator: how much of the floor the robot can reach the map calls free,
+    every ``period_s`` from the newest whole-map snapshot (the report's
+    ``time_to_coverage_s``). The truth mask is computed once, both in a thread."""
+
+    def __init__(self, shared: Shared, period_s: float = 2.0) -> None:
+        self.shared = shared
+        self.period_s = period_s
+        self.clock = CoverageClock()
+
+    async def run(self) -> None:
+        from app.sim.truth import coverage_of_mask, reachable_free_mask
+
+        shared = self.shared
+        sim = shared.devices.sim
+        if sim is None or shared.devices.camera is not sim.camera:
+            return
+        truth: tuple[GroundGrid, NDArray[np.bool_]] | None = None
+        last_seq = -1
+        while True:
+            await asyncio.sleep(self.period_s)
+            snapshot = shared.world_maps.peek()
+            if snapshot is None or snapshot.seq == last_seq or shared.started_s is None:
+                continue
+            last_seq = snapshot.seq
+            elapsed_s = shared.clock() - shared.started_s
+            if truth is None or truth[0].cell_m != snapshot.grid.cell_m:
+                truth = await asyncio.to_thread(
+                    reachable_free_mask,
+                    sim.world,
+                    snapshot.grid.cell_m,
+                    shared.config.mapping.robot_radius_m,
+                )
+            coverage = await asyncio.to_thread(
+                coverage_of_mask, snapshot.cells, snapshot.grid, sim.T_plan_odom, *truth
+            )
+            self.clock.sample(coverage, elapsed_s)

@@ -6,6 +6,25 @@ first-order lag of time constant ``motor_tau_s``. Within a `SimRobot.step` the t
 are constant, so each wheel's travel has a closed form, and the robot moves along the
 exact arc of those two travels. Encoders count ``ticks_per_rev`` per wheel revolution.
 
+Wheel slip (off in `RobotParams`' defaults, on in the daemon's ``[sim]`` configuration):
+the floor moves the robot by each wheel's *ground* travel, while the encoders count the
+wheel's *rotation*. Ground travel = rotation * (1 + scale error) * (1 + slip):
+
+- the scale error of each wheel (tyre radius, load, floor) is drawn once per robot,
+  N(0, ``wheel_scale_sigma_frac``): a calibrated robot's residual, which makes odometry
+  drift systematically (a straight drive curves);
+- the slip is ``slip_sigma_frac * severity * u`` with ``u`` a unit Ornstein-Uhlenbeck
+  process per wheel (correlation time ``slip_time_constant_s``, so its statistics do not
+  depend on the step length), and ``severity`` in [0, 1] growing with how much the step
+  turns (a skid-steer scrubs its wheels sideways, most in a spin turn) and with the
+  wheels' acceleration, from ``slip_rolling_share`` when rolling straight and steady;
+- optionally the encoders miscount: each counted tick adds N(0, ``encoder_tick_noise``)
+  ticks to a count error that accumulates (a random walk, as lost or double counts do).
+
+The draws come from one generator seeded by ``seed`` (the ``[sim] seed``), so a run is
+reproducible. With all three sigmas 0 nothing is drawn and the model is exactly the
+ideal one above.
+
 The robot is a circle of ``radius_m`` in the world's plan frame. When a step would make
 it touch a wall or a box, it stops at the contact (found by bisection along the arc),
 both wheels stop (stalled: encoders count only the travel before contact) and
@@ -18,6 +37,7 @@ Thread-safe: ``apply_pwm``/``read_encoders`` come from the simulated Uno's threa
 from __future__ import annotations
 
 import math
+import random
 import threading
 import time
 from dataclasses import dataclass
@@ -42,6 +62,18 @@ class RobotParams:
     ticks_per_rev: int = 360
     radius_m: float = DEFAULT_ROBOT_RADIUS_M
     """The circle the robot occupies, for collisions."""
+    wheel_scale_sigma_frac: float = 0.0
+    """Std of each wheel's ground travel per unit of rotation, drawn once per robot."""
+    slip_sigma_frac: float = 0.0
+    """Std of the slip fraction at full severity (a spin turn, a hard acceleration)."""
+    slip_time_constant_s: float = 0.3
+    """Correlation time of the slip: slip on a floor patch or through a turn persists."""
+    slip_rolling_share: float = 0.2
+    """Severity when rolling straight at constant speed (a spin turn's is 1)."""
+    slip_full_accel_m_s2: float = 2.0
+    """Wheel acceleration at which the severity reaches 1 by itself."""
+    encoder_tick_noise: float = 0.0
+    """Std of the count error each counted tick adds (ticks; it accumulates)."""
 
     def __post_init__(self) -> None:
         for name in ("wheel_base_m", "wheel_radius_m", "max_wheel_speed_m_s", "radius_m"):
@@ -53,6 +85,31 @@ class RobotParams:
             raise ValueError(f"RobotParams.motor_tau_s must be >= 0, got {self.motor_tau_s}")
         if self.ticks_per_rev < 1:
             raise ValueError(f"RobotParams.ticks_per_rev must be >= 1, got {self.ticks_per_rev}")
+        for name in ("wheel_scale_sigma_frac", "slip_sigma_frac", "encoder_tick_noise"):
+            if not 0 <= getattr(self, name) < math.inf:
+                raise ValueError(f"RobotParams.{name} must be finite and >= 0")
+        for name in ("slip_time_constant_s", "slip_full_accel_m_s2"):
+            if not 0 < getattr(self, name) < math.inf:
+                raise ValueError(f"RobotParams.{name} must be finite and > 0")
+        if not 0 <= self.slip_rolling_share <= 1:
+            raise ValueError("RobotParams.slip_rolling_share must be in [0, 1]")
+
+    @property
+    def slips(self) -> bool:
+        """Whether the ground travel differs from the rotation at all."""
+        return self.wheel_scale_sigma_frac > 0 or self.slip_sigma_frac > 0
+
+
+def slip_severity(rotation_m: tuple[float, float], accel_m_s2: float, params: RobotParams) -> float:
+    """How hard a step slips, in [0, 1]: the share of the wheels' travel that turns the
+    robot rather than moving it (1 in a spin turn), plus the acceleration's share of
+    ``slip_full_accel_m_s2``, on top of ``slip_rolling_share``."""
+    left, right = rotation_m
+    peak = max(abs(left), abs(right))
+    # |r - l| / (|r + l| + |r - l|): 0 rolling straight, 1/2 about one wheel, 1 spinning.
+    turning = abs(right - left) / (2 * peak) if peak > 0 else 0.0
+    accel = abs(accel_m_s2) / params.slip_full_accel_m_s2
+    return min(1.0, params.slip_rolling_share + turning + accel)
 
 
 def pwm_to_speed(pwm: int, params: RobotParams) -> float:
@@ -96,8 +153,9 @@ class SimRobot:
     Parameters
     ----------
     world : the floor plan it collides with (None: an empty plane)
-    params : geometry and motors
+    params : geometry, motors and slip
     pose : the start pose (default: the world's start pose, else the origin)
+    seed : of the slip's and the encoders' random draws
     """
 
     _MAX_SUBSTEP_M = 0.02
@@ -109,6 +167,7 @@ class SimRobot:
         params: RobotParams | None = None,
         *,
         pose: Pose2D | None = None,
+        seed: int = 0,
     ) -> None:
         self.world = world
         self.params = params if params is not None else RobotParams()
@@ -119,6 +178,18 @@ class SimRobot:
         self._pwm = (0, 0)
         self._speed = [0.0, 0.0]
         self._travel_m = [0.0, 0.0]
+        """Each wheel's rotation (surface metres): what the encoders count."""
+        # A string seed: a stream of its own, apart from the camera's noise (same seed).
+        self._rng = random.Random(f"floornav.sim.robot:{seed}")
+        sigma = self.params.wheel_scale_sigma_frac
+        self.wheel_scale = (
+            (1.0 + self._rng.gauss(0.0, sigma), 1.0 + self._rng.gauss(0.0, sigma))
+            if sigma > 0
+            else (1.0, 1.0)
+        )
+        """Ground travel per unit of rotation of each wheel (drawn once)."""
+        self._slip_state = [0.0, 0.0]
+        self._count_error = [0.0, 0.0]
         self._collisions = 0
         self._in_contact = False
         self._thread: threading.Thread | None = None
@@ -132,11 +203,14 @@ class SimRobot:
 
     def read_encoders(self) -> tuple[int, int]:
         with self._lock:
-            per_m = self.params.ticks_per_rev / (2 * math.pi * self.params.wheel_radius_m)
+            per_m = self._ticks_per_m()
             return (
-                math.floor(self._travel_m[0] * per_m),
-                math.floor(self._travel_m[1] * per_m),
+                math.floor(self._travel_m[0] * per_m + self._count_error[0]),
+                math.floor(self._travel_m[1] * per_m + self._count_error[1]),
             )
+
+    def _ticks_per_m(self) -> float:
+        return self.params.ticks_per_rev / (2 * math.pi * self.params.wheel_radius_m)
 
     # -- state -------------------------------------------------------------------------
 
@@ -173,11 +247,15 @@ class SimRobot:
             return
         p = self.params
         with self._lock:
-            travels: list[float] = []
+            rotations: list[float] = []
+            accel = 0.0
             for i in range(2):
                 target = pwm_to_speed(self._pwm[i], p)
-                travel, self._speed[i] = lagged_wheel(self._speed[i], target, p.motor_tau_s, dt_s)
-                travels.append(travel)
+                before = self._speed[i]
+                rotation, self._speed[i] = lagged_wheel(before, target, p.motor_tau_s, dt_s)
+                rotations.append(rotation)
+                accel = max(accel, abs(self._speed[i] - before) / dt_s)
+            travels = self._ground_travels(rotations, accel, dt_s) if p.slips else rotations
             start = self._pose
             fraction = self._free_fraction(start, travels[0], travels[1])
             if fraction < 1.0:
@@ -187,10 +265,34 @@ class SimRobot:
                 self._in_contact = True
             else:
                 self._in_contact = False
-            left, right = travels[0] * fraction, travels[1] * fraction
-            self._pose = arc_pose(start, left, right, p.wheel_base_m)
-            self._travel_m[0] += left
-            self._travel_m[1] += right
+            self._pose = arc_pose(
+                start, travels[0] * fraction, travels[1] * fraction, p.wheel_base_m
+            )
+            for i in range(2):
+                turned = rotations[i] * fraction
+                self._travel_m[i] += turned
+                if p.encoder_tick_noise > 0:
+                    ticks = abs(turned) * self._ticks_per_m()
+                    self._count_error[i] += self._rng.gauss(
+                        0.0, p.encoder_tick_noise * math.sqrt(ticks)
+                    )
+
+    def _ground_travels(
+        self, rotations: list[float], accel_m_s2: float, dt_s: float
+    ) -> list[float]:
+        """The wheels' travel over the floor for their ``rotations`` in a step of
+        ``dt_s`` (see the module docstring); advances the slip processes."""
+        p = self.params
+        severity = slip_severity((rotations[0], rotations[1]), accel_m_s2, p)
+        keep = math.exp(-dt_s / p.slip_time_constant_s)
+        fresh = math.sqrt(1.0 - keep * keep)
+        travels = []
+        for i in range(2):
+            if p.slip_sigma_frac > 0:
+                self._slip_state[i] = keep * self._slip_state[i] + fresh * self._rng.gauss(0.0, 1.0)
+            slip = p.slip_sigma_frac * severity * self._slip_state[i]
+            travels.append(rotations[i] * self.wheel_scale[i] * (1.0 + slip))
+        return travels
 
     def _clear(self, pose: Pose2D, from_clearance: float) -> bool:
         """Is ``pose`` collision-free? Moving away from contact is always allowed."""

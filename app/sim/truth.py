@@ -156,9 +156,21 @@ def coverage_reachable(
     world's start, at the map's cell size) that the map calls free; the map is looked up
     as in `map_truth_scores`."""
     truth_grid, reachable = reachable_free_mask(world, map_grid.cell_m, robot_radius_m)
+    return coverage_of_mask(classes, map_grid, T_plan_map, truth_grid, reachable)
+
+
+def coverage_of_mask(
+    classes: NDArray[np.int8],
+    map_grid: GroundGrid,
+    T_plan_map: Pose2D,
+    truth_grid: GroundGrid,
+    mask: NDArray[np.bool_],
+) -> float:
+    """The fraction of ``mask`` (on ``truth_grid``, in the plan frame) that the map calls
+    free: `coverage_reachable` with the mask computed once (it takes ~0.1 s)."""
     mapped = _map_classes_at(classes, map_grid, T_plan_map, truth_grid)
-    n_reachable = int(reachable.sum())
-    return int(((mapped == FREE) & reachable).sum()) / n_reachable if n_reachable else 0.0
+    n_mask = int(mask.sum())
+    return int(((mapped == FREE) & mask).sum()) / n_mask if n_mask else 0.0
 
 
 def _truth_free(world: World, grid: GroundGrid, occ: NDArray[np.uint8]) -> NDArray[np.bool_]:

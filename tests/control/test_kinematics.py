@@ -14,6 +14,7 @@ from app.control.kinematics import (
     wheel_speeds,
 )
 from app.control.mux import Twist
+from app.mapping.frames import Pose2D
 from app.sim.robot import RobotParams, pwm_to_speed
 
 DRIVE = DriveConfig()
@@ -110,3 +111,24 @@ def test_odometry_survives_counter_wrap_and_rejects_jumps() -> None:
     odo.update(1000000, 1000000, 0.2)  # a reset / garbage: dropped
     assert odo.rejected_steps == 1
     assert odo.pose.x_m == pytest.approx(10 * odo.meters_per_tick)
+
+
+def test_odometry_correction_moves_the_pose_and_its_history_not_the_distance() -> None:
+    odo = WheelOdometry(DRIVE)
+    odo.update(0, 0, 0.0)
+    drive_ticks(odo, 0.2, 0.2, 0.0, 1.0)
+    before_mid, distance = odo.pose_at(0.5), odo.distance_m
+    # A scan match: the robot is 1 cm further left and 0.01 rad more to the left.
+    T_corrected_odom = Pose2D(0.0, 0.01, 0.01)
+    odo.correct(T_corrected_odom)
+    expected = T_corrected_odom.compose(Pose2D(odo.pose.x_m, 0.0, 0.0))
+    assert (odo.pose.x_m, odo.pose.y_m) == pytest.approx((expected.x_m, expected.y_m), abs=0.003)
+    assert odo.pose.theta_rad == pytest.approx(0.01)
+    mid = odo.pose_at(0.5)
+    moved = T_corrected_odom.compose(before_mid)
+    assert (mid.x_m, mid.y_m, mid.theta_rad) == pytest.approx((moved.x_m, moved.y_m, 0.01))
+    assert odo.distance_m == distance
+    # Travel continues from the corrected pose, along the corrected heading.
+    drive_ticks(odo, 0.1, 0.1, 1.0, 2.0)
+    end = T_corrected_odom.compose(Pose2D(0.3, 0.0, 0.0))
+    assert (odo.pose.x_m, odo.pose.y_m) == pytest.approx((end.x_m, end.y_m), abs=0.003)

@@ -1,0 +1,174 @@
+#!/usr/bin/env python3
+"""Does scan matching keep the pose, and the map, closer to the truth than wheel odometry
+alone? An open-loop A/B on the simulator, free of the daemon's timing and the machine's
+load: the same scripted tour (waypoints in the plan frame, driven by a controller that
+sees the true pose, with spin turns to look around as exploration does) is driven with
+the shipped wheel-slip model; every frame is rendered, segmented by the shipped method
+and fused by the mapper at the odometry pose, corrected by scan matching or not.
+
+    .venv/bin/python scripts/measure_localization.py [--world two-rooms] [--seeds 0 1 2]
+
+prints one line per (seed, variant) and writes docs/measurements/localization.json.
+"""
+
+from __future__ import annotations
+
+import argparse
+import json
+import math
+import statistics
+import sys
+import time
+from pathlib import Path
+
+ROOT = Path(__file__).resolve().parents[1]
+sys.path.insert(0, str(ROOT))
+
+from app.config import load_config  # noqa: E402
+from app.control.kinematics import WheelOdometry, twist_to_pwm  # noqa: E402
+from app.control.mux import Twist  # noqa: E402
+from app.devices import robot_params  # noqa: E402
+from app.mapping.frames import Pose2D  # noqa: E402
+from app.mapping.ground_map import GroundMapper  # noqa: E402
+from app.perception.pipeline import FloorSegmenter  # noqa: E402
+from app.sim.robot import SimRobot  # noqa: E402
+from app.sim.setup import camera_model, renderer_from_config, sim_floor_calibration  # noqa: E402
+from app.sim.truth import map_truth_scores  # noqa: E402
+
+FRAME_S = 1 / 30
+PHYSICS_S = 0.01
+
+TOURS = {
+    # Plan-frame waypoints; "spin" turns a full circle in place (exploration's look-around).
+    "two-rooms": [
+        "spin",
+        (2.9, 3.0),
+        (2.9, 2.2),
+        "spin",
+        (1.5, 2.0),
+        (1.5, 3.3),
+        "spin",
+        (1.2, 4.5),
+        (3.9, 4.6),
+        "spin",
+        (3.9, 3.4),
+        (1.3, 3.2),
+    ],
+}
+
+
+def heading_error(pose: Pose2D, target: tuple[float, float]) -> tuple[float, float]:
+    dx, dy = target[0] - pose.x_m, target[1] - pose.y_m
+    return math.hypot(dx, dy), math.remainder(math.atan2(dy, dx) - pose.theta_rad, math.tau)
+
+
+def run_tour(world: str, seed: int, scan_matching: bool, *, slip: bool = True) -> dict[str, object]:
+    sim: dict[str, object] = {"world_file": world, "seed": seed}
+    if not slip:
+        sim.update(slip_sigma_frac=0.0, wheel_scale_sigma_frac=0.0, encoder_tick_noise=0.0)
+    config = load_config(ROOT / "config.toml", sim=sim, mapping={"scan_matching": scan_matching})
+    renderer = renderer_from_config(config)
+    robot = SimRobot(renderer.world, robot_params(config), seed=seed)
+    start = renderer.world.start_pose
+    odometry = WheelOdometry(config.drive)
+    segmenter = FloorSegmenter(config.perception)
+    mapper = GroundMapper(
+        sim_floor_calibration(camera_model(config)), config.mapping, config.camera
+    )
+    errors: list[float] = []
+    t = 0.0
+    spun = 0.0
+    legs = list(TOURS[world])
+    last_appearances = -1.0
+    cruise = config.steering.cruise_speed_m_s
+    turn = config.steering.turn_speed_rad_s
+    started = time.perf_counter()
+    while legs and t < 240.0 and robot.collisions == 0:
+        truth = robot.pose
+        leg = legs[0]
+        if leg == "spin":
+            twist = Twist(0.0, turn)
+            spun += turn * FRAME_S
+            if spun >= math.tau:
+                legs.pop(0)
+                spun = 0.0
+        else:
+            assert isinstance(leg, tuple)
+            distance, error = heading_error(truth, leg)
+            if distance < 0.1:
+                legs.pop(0)
+                twist = Twist(0.0, 0.0)
+            elif abs(error) > 0.5:
+                twist = Twist(0.0, math.copysign(turn, error))
+            else:
+                twist = Twist(cruise * min(1.0, distance / 0.3), 2.0 * error)
+        robot.apply_pwm(*twist_to_pwm(twist, config.drive))
+        for _ in range(round(FRAME_S / PHYSICS_S)):
+            robot.step(PHYSICS_S)
+        t += FRAME_S
+        odometry.update(*robot.read_encoders(), t)
+        frame = renderer.render(robot.pose)
+        if t - last_appearances >= 0.5:
+            segmenter.learned_floor = mapper.memory.appearances()
+            last_appearances = t
+        result = segmenter.segment(frame.image)
+        update = mapper.update(result.floor_mask, odometry.pose, t, frame.image)
+        if update.correction is not None:
+            odometry.correct(update.correction)
+        # The odometry frame starts at the start pose (as the daemon's T_plan_odom).
+        estimate = start.compose(odometry.pose)
+        true = robot.pose
+        errors.append(math.hypot(estimate.x_m - true.x_m, estimate.y_m - true.y_m))
+    classes = mapper.grid.classify()
+    scores = map_truth_scores(classes, mapper.grid.world_grid, start, renderer.world).as_dict()
+    ordered = sorted(errors)
+    localizer = mapper.localizer
+    return {
+        "world": world,
+        "seed": seed,
+        "scan_matching": scan_matching,
+        "slip": slip,
+        "tour_s": round(t, 1),
+        "finished": not legs,
+        "distance_m": round(odometry.distance_m, 2),
+        "collisions": robot.collisions,
+        "pose_error_m": {
+            "p50": round(statistics.median(ordered), 3),
+            "p95": round(ordered[round(0.95 * (len(ordered) - 1))], 3),
+            "final": round(errors[-1], 3),
+        },
+        "map_iou": scores["map_iou"],
+        "free_precision": scores.get("free_precision"),
+        "occupied_near_truth": scores.get("occupied_near_truth"),
+        "matches": None
+        if localizer is None
+        else {"attempts": localizer.attempts, "applied": localizer.applied},
+        "wall_s": round(time.perf_counter() - started, 1),
+    }
+
+
+def main() -> int:
+    parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
+    parser.add_argument("--world", default="two-rooms", choices=sorted(TOURS))
+    parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
+    parser.add_argument(
+        "--no-slip", action="store_true", help="ideal wheels: what scan matching adds alone"
+    )
+    parser.add_argument("--out", type=Path, default=ROOT / "docs/measurements/localization.json")
+    args = parser.parse_args()
+    rows = []
+    for seed in args.seeds:
+        for scan_matching in (False, True):
+            row = run_tour(args.world, seed, scan_matching, slip=not args.no_slip)
+            rows.append(row)
+            print(json.dumps(row), flush=True)
+    args.out.parent.mkdir(parents=True, exist_ok=True)
+    command = "scripts/measure_localization.py --world {} --seeds {}{}".format(
+        args.world, " ".join(map(str, args.seeds)), " --no-slip" if args.no_slip else ""
+    )
+    args.out.write_text(json.dumps({"command": command, "runs": rows}, indent=2) + "\n")
+    return 0
+
+
+if __name__ == "__main__":
+    raise SystemExit(main())
