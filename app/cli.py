@@ -43,12 +43,18 @@ def cmd_run(args: argparse.Namespace) -> int:
     config = load_config(args.config, sim=sim) if sim else _load(args.config)
     if args.duration_s is not None and not args.duration_s > 0:
         raise ValueError(f"--duration-s must be > 0, got {args.duration_s}")
+    record: Path | None = args.record
+    if record is not None and record.suffix.lower() != ".mcap":
+        raise ValueError(f"--record writes MCAP: name a .mcap file, got {record}")
+    if record is not None and record.exists():
+        raise ValueError(f"--record {record}: the file exists; it is never overwritten")
     return run_daemon(
         config,
         config_source=str(args.config),
         duration_s=args.duration_s,
         report_path=args.report,
         map_path=args.map,
+        record_path=record,
     )
 
 
@@ -350,6 +356,13 @@ def build_parser() -> argparse.ArgumentParser:
         metavar="FILE",
         help="continue the map saved in FILE (if it exists) and save it there at exit, "
         "with a ROS map_server copy beside it (FILE.pgm, FILE.yaml)",
+    )
+    p.add_argument(
+        "--record",
+        type=Path,
+        metavar="FILE.mcap",
+        help="record the run to FILE.mcap (camera, floor masks, odometry, commands, stops, "
+        'map, logs; Foxglove schemas); replay it with [camera] source = "replay"',
     )
     p.add_argument(
         "--world",

@@ -17,4 +17,14 @@ def bridge_services(runtime: Runtime, token: str) -> list[Service]:
     """The configured bridges for ``runtime``; ``token`` is the daemon's API token (the
     same rules as the REST API: stopping needs none, moving the robot needs it)."""
     services: list[Service] = []
+    if runtime.config.mqtt.url is not None:
+        from app.bridges.mqtt import MqttBridge
+
+        services.append(MqttBridge(runtime, token))
+    if runtime.config.foxglove.port is not None:
+        from app.bridges.foxglove_view import foxglove_view
+
+        view = foxglove_view(runtime)  # read-only: needs no token
+        if view is not None:
+            services.append(view)
     return services

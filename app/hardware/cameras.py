@@ -5,9 +5,11 @@
     When the device is missing or stops delivering, the state turns ``FAILED`` (with
     the reason) and the thread reopens it with exponential backoff.
 `ReplayCamera`
-    A video file, a folder of images, or a `app.hardware.recorder` recording, paced at
-    the source's rate (or a given fps), optionally looping; ``ENDED`` at the end,
-    ``FAILED`` on an unreadable source. Never raises from its thread.
+    A video file, a folder of images, or a recording (an MCAP file of
+    `app.recording.mcap_writer`, or a folder of the former ``frames/`` + ``log.jsonl``
+    format), paced at the source's rate (or a given fps; a recording always at its
+    recorded timing), optionally looping; ``ENDED`` at the end, ``FAILED`` on an
+    unreadable source. Never raises from its thread.
 
 Both, and the simulator's camera (`app.sim.camera.SimCamera`), build on
 `ThreadedCamera` and share its contract: `open` starts the thread and returns at once,
@@ -31,7 +33,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.hardware.interfaces import CameraFrame, DeviceState, DeviceStatus
-from app.imageio import ImageFileError, read_bgr
+from app.imageio import ImageFileError, decode_bgr_bytes, read_bgr
 
 log = logging.getLogger(__name__)
 
@@ -186,13 +188,15 @@ class OpenCVCamera(ThreadedCamera):
 
 
 class ReplayCamera(ThreadedCamera):
-    """Plays back a video file, an image folder (sorted by name) or a recording folder
-    (``frames/`` + ``log.jsonl``, paced by its recorded timestamps).
+    """Plays back a video file, an image folder (sorted by name), an MCAP recording
+    (``*.mcap``: its ``/camera/image`` frames) or a recording folder (``frames/`` +
+    ``log.jsonl``). Recordings play at their recorded timing, whatever ``fps`` says; a
+    recording cut short plays up to where it stops (the status's detail says so).
 
     Parameters
     ----------
     source : path
-    fps : playback rate; None: the video's own rate, the recording's timestamps, or
+    fps : playback rate of a video or an image folder; None: the video's own rate, or
         ``default_fps`` for an image folder
     loop : start again at the end instead of ending
     """
@@ -245,6 +249,8 @@ class ReplayCamera(ThreadedCamera):
         try:
             if self.source.is_dir():
                 self._run_images()
+            elif self.source.suffix.lower() == ".mcap":
+                self._run_mcap()
             else:
                 self._run_video()
         except (OSError, ValueError, KeyError, cv2.error) as exc:
@@ -259,7 +265,7 @@ class ReplayCamera(ThreadedCamera):
         while not self._stop.is_set():
             start = time.monotonic()
             for k, path in enumerate(files):
-                offset = times[k] if times is not None and self.fps is None else k * period
+                offset = times[k] if times is not None else k * period
                 if not self._pace(start, offset):
                     return
                 # The commands' reader: an oversized or lying file is refused from its
@@ -275,6 +281,48 @@ class ReplayCamera(ThreadedCamera):
                 self._set_status(DeviceState.ENDED, f"{self.source}: end")
                 return
             self._stop.wait(period)
+
+    def _run_mcap(self) -> None:
+        """An MCAP recording's camera frames, spaced as they were captured."""
+        from app.recording.mcap_reader import RecordingError, TruncatedRecordingError, iter_images
+
+        bad_frames, problem_logged = 0, False
+        while not self._stop.is_set():
+            start_s, first_ns, last_ns, played, problem = 0.0, -1, 0, 0, ""
+            try:
+                for k, recorded in enumerate(iter_images(self.source)):
+                    try:
+                        image = decode_bgr_bytes(recorded.data, name=f"{self.source} frame {k}")
+                    except ImageFileError as exc:
+                        bad_frames += 1
+                        if bad_frames == 1:
+                            log.warning("%s: skipping undecodable frames: %s", self.source, exc)
+                        continue
+                    if first_ns < 0:
+                        first_ns, start_s = recorded.log_time_ns, time.monotonic()
+                    if not self._pace(start_s, (recorded.log_time_ns - first_ns) / 1e9):
+                        return
+                    self._publish(image, time.monotonic())
+                    self._set_status(DeviceState.CONNECTED)
+                    played, last_ns = played + 1, recorded.log_time_ns
+            except TruncatedRecordingError as exc:
+                if played and not problem_logged:
+                    log.warning("%s; played the %d frames before", exc, played)
+                problem, problem_logged = str(exc), True
+            except RecordingError as exc:
+                self._set_status(DeviceState.FAILED, str(exc))
+                return
+            if played == 0:
+                self._set_status(
+                    DeviceState.FAILED, problem or f"{self.source}: no camera frames to replay"
+                )
+                return
+            if not self.loop:
+                detail = f"{self.source}: end" + (f" (cut short: {problem})" if problem else "")
+                self._set_status(DeviceState.ENDED, detail)
+                return
+            gap = (last_ns - first_ns) / 1e9 / (played - 1) if played > 1 else 1 / self.default_fps
+            self._stop.wait(gap)
 
     def _run_video(self) -> None:
         while not self._stop.is_set():

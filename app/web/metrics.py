@@ -27,6 +27,7 @@ from prometheus_client.core import (
 from prometheus_client.registry import Collector
 
 from app.messages import State
+from app.runtime.service_status import service_status
 from app.runtime.telemetry import FloatWindow
 from app.web.service import RobotService
 
@@ -213,6 +214,18 @@ class RuntimeCollector(Collector):
             "1 while a fault is latched (needs POST /api/fault/reset), else 0",
             value=1.0 if policy.latched is not None else 0.0,
         )
+        mqtt = service_status(service, "mqtt")
+        if mqtt is not None:  # the MQTT bridge is configured (`app.bridges.mqtt`)
+            yield GaugeMetricFamily(
+                "floornav_mqtt_connected",
+                "1 while the MQTT bridge is connected to its broker, else 0",
+                value=1.0 if mqtt.get("state") == "connected" else 0.0,
+            )
+            yield CounterMetricFamily(
+                "floornav_mqtt_reconnects",
+                "Reconnections of the MQTT bridge after its first connect",
+                value=mqtt.get("reconnects", 0),
+            )
 
         frames = CounterMetricFamily(
             "floornav_frames", "Camera frames by what happened to them", labels=["outcome"]
