@@ -15,6 +15,7 @@ from __future__ import annotations
 
 import argparse
 import json
+import os
 import subprocess
 import sys
 import tempfile
@@ -46,7 +47,9 @@ def run_one(world: str, seed: int, duration_s: float) -> Path:
             str(map_path),
         ]
         print(" ".join(command), flush=True)
-        subprocess.run(command, check=True, cwd=ROOT, stdout=subprocess.DEVNULL)
+        # Ports of their own: a daemon or test elsewhere on the machine keeps its own.
+        env = {**os.environ, "FLOORNAV_WEB__PORT": "18080", "FLOORNAV_VISER__PORT": "18081"}
+        subprocess.run(command, check=True, cwd=ROOT, stdout=subprocess.DEVNULL, env=env)
         PICTURES.mkdir(parents=True, exist_ok=True)
         subprocess.run(
             [
@@ -102,9 +105,9 @@ def table(command: str) -> str:
                     f"{r['duration_s']:.0f}",
                     cell(r.get("coverage_reachable")),
                     cell(r.get("coverage_ratio")),
-                    f"{cell(ttc.get('0.5'), 0)} / {cell(ttc.get('0.9'), 0)}",
+                    f"{cell(ttc.get('50'), 0)} / {cell(ttc.get('90'), 0)}",
                     cell(r.get("final_state")),
-                    cell(r.get("home_distance_m"), 2),
+                    cell((r.get("exploration") or {}).get("home_distance_m"), 2),
                     cell(r.get("collisions")),
                     cell(truth.get("occupied_near_truth")),
                     cell(truth.get("map_iou")),

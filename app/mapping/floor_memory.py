@@ -51,6 +51,10 @@ class FloorMemoryParams:
     max_appearances : int, the smallest appearance is dropped beyond this
     unlearn_distance : float, scaled-Lab distance within which a colour seen standing
         takes cells from an appearance
+    unlearn_share : float in (0, 1], an appearance is unlearned from what stands only
+        when at least this share of its colours is that appearance's: what parallax
+        finds standing are mostly edges, and an edge's pixels include the floor beside
+        it, so a minority of floor-coloured pixels says nothing against the floor
     """
 
     near_m: float = 1.5
@@ -59,10 +63,13 @@ class FloorMemoryParams:
     min_cells: int = 40
     max_appearances: int = 8
     unlearn_distance: float = 0.10
+    unlearn_share: float = 0.5
 
     def __post_init__(self) -> None:
         if not (self.near_m > 0 and 0 < self.colour_rate <= 1):
             raise ValueError("FloorMemoryParams: need near_m > 0 and 0 < colour_rate <= 1")
+        if not 0 < self.unlearn_share <= 1:
+            raise ValueError("FloorMemoryParams: unlearn_share must be in (0, 1]")
         if not (self.merge_distance > 0 and self.unlearn_distance > 0):
             raise ValueError("FloorMemoryParams: distances must be > 0")
         if self.min_cells < 1 or self.max_appearances < 1:
@@ -227,20 +234,34 @@ class FloorMemory:
         rr, cc = np.nonzero(inside)
         return self.confirm_cells(rows[rr] * grid.cols + cols[cc])
 
-    def mark_standing(self, cells: NDArray[np.int64]) -> None:
+    def mark_standing(
+        self, cells: NDArray[np.int64], standing_bgr: NDArray[np.generic] | None = None
+    ) -> None:
         """Geometry saw something standing on these cells: they are no longer known
-        floor, and an appearance of their colour is unlearned (a floor-coloured box)."""
+        floor, and an appearance of its colour is unlearned (a floor-coloured box).
+
+        ``standing_bgr`` : (N, 3) colours of the image pixels seen standing. Without
+        them the cells' own colour layer stands in; with them the standing thing's
+        own colours decide (the cells a standing pixel projects to through the floor
+        homography lie behind it, and their colour is the floor's there)."""
         cells = np.unique(cells[cells >= 0])
         if cells.size == 0:
             return
         self.confirmed.reshape(-1)[cells] = 0
         self.standing.reshape(-1)[cells] = 1
-        seen = cells[self._sightings[cells] > 0]
-        if seen.size == 0 or self._appearance_lab.shape[0] == 0:
+        if self._appearance_lab.shape[0] == 0:
             return
-        lab = bgr_to_scaled_lab(self._colour[seen])
+        if standing_bgr is None:
+            seen = cells[self._sightings[cells] > 0]
+            colours = self._colour[seen]
+        else:
+            colours = np.asarray(standing_bgr, dtype=np.float32).reshape(-1, 3)
+        if colours.shape[0] == 0:
+            return
+        lab = bgr_to_scaled_lab(colours)
         distance = np.linalg.norm(lab[:, None, :] - self._appearance_lab[None, :, :], axis=2)
         votes = (distance <= self.params.unlearn_distance).sum(axis=0)
+        votes[votes < self.params.unlearn_share * colours.shape[0]] = 0
         # A standing colour costs twice what a floor sighting gives: the floor must be
         # confirmed again, more than it stood, to come back.
         self._appearance_cells -= 2.0 * votes

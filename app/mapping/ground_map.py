@@ -123,6 +123,8 @@ class MapUpdate:
     """Seconds the frame's scan match took (None: none ran)."""
 
 
+STANDING_COLOUR_STRIDE = 4
+"""Every this many standing pixels' colours vote on unlearning (thousands per test)."""
 PROBE_STANDING_REACH_M = 0.3
 """An occupied cell this close to one parallax saw standing is a real edge: not probed."""
 PROBE_GIVEN_UP_RADIUS_M = 0.8
@@ -246,7 +248,12 @@ class GroundMapper:
             flat = tested.floor & tested.tested & ~tested.standing
             memory.confirm_cells(index[birdseye_floor_patch(flat, self.birdseye) == FLOOR])
             standing = birdseye_floor_patch(tested.standing, self.birdseye) == FLOOR
-            memory.mark_standing(index[standing])
+            standing_bgr = (
+                image[tested.standing][::STANDING_COLOUR_STRIDE]
+                if image is not None and image.ndim == 3
+                else None
+            )
+            memory.mark_standing(index[standing], standing_bgr)
             patch[standing] = NOT_FLOOR
         memory.drive_over(T_world_robot, self.mapping.robot_radius_m)
         corrected = memory.correct_patch(patch, index)

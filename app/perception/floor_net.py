@@ -235,6 +235,12 @@ def connected_to(extra: NDArray[np.bool_], anchor: NDArray[np.bool_]) -> NDArray
     return np.asarray(keep[labels], dtype=np.bool_)
 
 
+LEARNED_FLOOR_MAX_ROW_FRACTION = 0.6
+"""The learned-floor pass adds floor only above this fraction of the image height: the
+bottom 40 % is the near field (where ``near_false_floor`` is scored and the clearance
+stop looks), fixed before measuring."""
+
+
 def learned_floor_pass(
     net: FloorNet,
     lab_scaled: NDArray[np.float32],
@@ -260,6 +266,10 @@ def learned_floor_pass(
         blob_for_reference(lab_scaled, np.asarray(reference, dtype=np.float32)), zone_mask_out
     )
     extra = connected_to((second.probability > 0.5) & ~first_floor, first_floor)
+    # Not in the near field: what the clearance stop reads there must be the per-frame
+    # model's call (and the map's geometry-confirmed floor), never a colour learned
+    # elsewhere: a floor-coloured box right ahead is the case that hits things.
+    extra[round(LEARNED_FLOOR_MAX_ROW_FRACTION * extra.shape[0]) :, :] = False
     combined = np.where(extra, np.maximum(probability, second.probability), probability)
     return LearnedFloorPass(
         combined.astype(np.float32), reference, float(np.count_nonzero(extra)) / extra.size

@@ -191,3 +191,22 @@ def test_restore_refuses_another_grid() -> None:
     state = FloorMemoryState(np.zeros((3, 3), np.uint8), np.zeros((0, 4), np.float32))
     with pytest.raises(ValueError, match="shape"):
         memory.restore(state)
+
+
+def test_standing_pixels_unlearn_only_the_colour_most_of_them_have() -> None:
+    memory = FloorMemory(WORLD, FloorMemoryParams(min_cells=40))
+    index = patch_world_index(PATCH, WORLD, Pose2D(-1.0, 0.0, 0.0))
+    patch = np.full(PATCH.shape, NOT_FLOOR, np.uint8)
+    memory.observe_colours(uniform_patch_bgr(TILE_BGR), patch, index, np.ones(PATCH.shape, bool))
+    memory.confirm_cells(index.ravel())
+    assert len(memory.appearances()) == 1
+    box = np.array([40.0, 40.0, 200.0], np.float32)  # a red box's edge...
+    edge = np.vstack([np.tile(box, (70, 1)), np.tile(np.float32(TILE_BGR), (30, 1))])
+    memory.mark_standing(index.ravel()[:10], edge)  # ...with 30 % floor pixels beside it
+    assert len(memory.appearances()) == 1 and memory.unlearned == 0
+    assert memory.standing.reshape(-1)[index.ravel()[:10]].all()
+    # A floor-coloured box: most of what stands has the floor's colour.
+    floor_box = np.vstack([np.tile(np.float32(TILE_BGR), (80, 1)), np.tile(box, (20, 1))])
+    for _ in range(20):
+        memory.mark_standing(index.ravel()[:10], floor_box)
+    assert memory.appearances() == () and memory.unlearned == 1

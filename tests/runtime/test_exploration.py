@@ -32,3 +32,34 @@ async def test_twenty_seconds_of_exploration() -> None:
     assert report["map_iou"] >= 0.8
     assert report["coverage_ratio"] >= 0.2
     assert report["fps"] >= 20
+
+
+@pytest.mark.sim
+@pytest.mark.parametrize("world", ["home", "office"])
+async def test_twenty_seconds_in_each_harder_world(world: str) -> None:
+    """The shipped configuration in the other shipped worlds: it drives, never collides,
+    maps some reachable floor, and the report carries the exploration's fields."""
+    config = load_config(
+        ROOT / "config.toml",
+        runtime={"autostart": True, "log_level": "warning"},
+        sim={"world_file": world},
+    )
+    with open_devices(config) as devices:
+        runtime = Runtime(config, devices)
+        await runtime.run(duration_s=20.0, install_signals=False)
+        report = runtime.report()
+        assert devices.sim is not None
+        world_name = devices.sim.world.name
+    print(
+        f"\n20 s in {world}: reachable coverage {report['coverage_reachable']}, map IoU"
+        f" {report['map_iou']}, {report['distance_m']} m, pose error {report['pose_error_m']},"
+        f" {report['exploration']['phase']}"
+    )
+    assert report["world"] == world_name
+    assert report["collisions"] == 0
+    assert report["final_motor_pwm"] == [0, 0]
+    assert report["distance_m"] > 0.3
+    assert report["coverage_reachable"] > 0.03
+    assert report["exploration"]["phase"] in {"exploring", "returning", "explored"}
+    assert set(report["time_to_coverage_s"]) == {"50", "90"}
+    assert set(report["pose_error_m"]) == {"p50", "p95", "final"}
