@@ -15,18 +15,16 @@ import argparse
 import asyncio
 import contextlib
 import json
-import os
-import signal
 import statistics
 import subprocess
 import sys
-import time
+from collections.abc import Iterator
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT / "scripts"))
 
-from measure_mqtt_cpu import cpu_s, frames, free_port, status  # noqa: E402
+from measure_mqtt_cpu import daemon_cpu_per_frame, free_port  # noqa: E402
 
 SUBPROTOCOL = "foxglove.sdk.v1"
 
@@ -34,9 +32,10 @@ SUBPROTOCOL = "foxglove.sdk.v1"
 async def subscribe_everything(port: int) -> None:
     """A Foxglove protocol client: subscribe to every advertised channel, read forever."""
     import websockets
+    from websockets.typing import Subprotocol
 
     async with websockets.connect(
-        f"ws://127.0.0.1:{port}", subprotocols=[SUBPROTOCOL], max_size=None
+        f"ws://127.0.0.1:{port}", subprotocols=[Subprotocol(SUBPROTOCOL)], max_size=None
     ) as ws:
         subscribed: set[int] = set()
         received = 0
@@ -56,65 +55,35 @@ async def subscribe_everything(port: int) -> None:
                 await ws.send(json.dumps({"op": "subscribe", "subscriptions": subs}))
 
 
-def measure(view: bool, warmup_s: float, window_s: float) -> float:
-    web, fox = free_port(), free_port()
-    env = {
-        **os.environ,
-        "FLOORNAV_WEB__PORT": str(web),
-        "FLOORNAV_VISER__ENABLED": "false",
-        "FLOORNAV_TOKEN": "measure-foxglove-cpu-00000",
-    }
-    if view:
-        env["FLOORNAV_FOXGLOVE__PORT"] = str(fox)
-    proc = subprocess.Popen(
-        [str(ROOT / ".venv" / "bin" / "floornav"), "run"],
-        cwd=ROOT,
-        env=env,
+@contextlib.contextmanager
+def subscriber(port: int) -> Iterator[None]:
+    """A client subscribed to every channel, in its own process (its decoding is not
+    the daemon's CPU)."""
+    client = subprocess.Popen(
+        [sys.executable, __file__, "--subscriber", str(port)],
         stdout=subprocess.DEVNULL,
         stderr=subprocess.DEVNULL,
-        start_new_session=True,
     )
-    client: subprocess.Popen[bytes] | None = None
     try:
-        deadline = time.monotonic() + 120
-        while True:
-            try:
-                status(web)
-                break
-            except OSError:
-                if time.monotonic() > deadline or proc.poll() is not None:
-                    raise RuntimeError("the daemon did not start") from None
-                time.sleep(0.1)
-        if view:
-            client = subprocess.Popen(
-                [sys.executable, __file__, "--subscriber", str(fox)],
-                stdout=subprocess.DEVNULL,
-                stderr=subprocess.DEVNULL,
-            )
-        time.sleep(warmup_s)
-        f0, c0, t0 = frames(web), cpu_s(proc.pid), time.monotonic()
-        time.sleep(window_s)
-        f1, c1, t1 = frames(web), cpu_s(proc.pid), time.monotonic()
-        if client is not None and client.poll() is not None:
+        yield
+        if client.poll() is not None:
             raise RuntimeError("the Foxglove subscriber ended early")
-        per_frame_ms = (c1 - c0) / max(1, f1 - f0) * 1000
-        print(
-            f"view {'on ' if view else 'off'}: {f1 - f0} frames in {t1 - t0:.0f} s "
-            f"({(f1 - f0) / (t1 - t0):.1f} fps), {c1 - c0:.1f} s CPU, "
-            f"{per_frame_ms:.2f} ms/frame",
-            flush=True,
-        )
-        return per_frame_ms
     finally:
-        if client is not None:
-            client.terminate()
-            client.wait(10)
-        proc.send_signal(signal.SIGTERM)
-        try:
-            proc.wait(30)
-        finally:
-            with contextlib.suppress(ProcessLookupError):
-                os.killpg(proc.pid, signal.SIGKILL)  # the simulated Uno's process too
+        client.terminate()
+        client.wait(10)
+
+
+def measure(view: bool, warmup_s: float, window_s: float) -> float:
+    if not view:
+        return daemon_cpu_per_frame({}, warmup_s, window_s, "view off")
+    fox = free_port()
+    return daemon_cpu_per_frame(
+        {"FLOORNAV_FOXGLOVE__PORT": str(fox)},
+        warmup_s,
+        window_s,
+        "view on ",
+        attach=lambda: subscriber(fox),
+    )
 
 
 def main() -> None:

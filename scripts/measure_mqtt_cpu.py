@@ -22,6 +22,7 @@ import subprocess
 import tempfile
 import time
 import urllib.request
+from collections.abc import Callable
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
@@ -52,17 +53,24 @@ def frames(port: int) -> int:
     return int(counters["frames_perceived"])
 
 
-def measure(broker_port: int, bridge: bool, warmup_s: float, window_s: float) -> float:
+def daemon_cpu_per_frame(
+    env_overrides: dict[str, str],
+    warmup_s: float,
+    window_s: float,
+    label: str,
+    attach: Callable[[], contextlib.AbstractContextManager[object]] | None = None,
+) -> float:
+    """Start `floornav run` on the simulator with ``env_overrides`` (its own web port,
+    no viser), enter ``attach()`` (a subscriber) once its API answers, and return the
+    daemon's CPU milliseconds per perceived frame over ``window_s`` after ``warmup_s``."""
     web = free_port()
     env = {
         **os.environ,
         "FLOORNAV_WEB__PORT": str(web),
         "FLOORNAV_VISER__ENABLED": "false",
-        "FLOORNAV_TOKEN": "measure-mqtt-cpu-000000000",
+        "FLOORNAV_TOKEN": "measure-bridge-cpu-0000000",
+        **env_overrides,
     }
-    if bridge:
-        env["FLOORNAV_MQTT__URL"] = f"mqtt://127.0.0.1:{broker_port}"
-        env["FLOORNAV_MQTT__ROBOT_ID"] = "measure"
     proc = subprocess.Popen(
         [str(ROOT / ".venv" / "bin" / "floornav"), "run"],
         cwd=ROOT,
@@ -81,16 +89,16 @@ def measure(broker_port: int, bridge: bool, warmup_s: float, window_s: float) ->
                 if time.monotonic() > deadline or proc.poll() is not None:
                     raise RuntimeError("the daemon did not start") from None
                 time.sleep(0.1)
-        time.sleep(warmup_s)
-        f0, c0, t0 = frames(web), cpu_s(proc.pid), time.monotonic()
-        time.sleep(window_s)
-        f1, c1, t1 = frames(web), cpu_s(proc.pid), time.monotonic()
-        mqtt = status(web)["mqtt"]
+        with attach() if attach is not None else contextlib.nullcontext():
+            time.sleep(warmup_s)
+            f0, c0, t0 = frames(web), cpu_s(proc.pid), time.monotonic()
+            time.sleep(window_s)
+            f1, c1, t1 = frames(web), cpu_s(proc.pid), time.monotonic()
         per_frame_ms = (c1 - c0) / max(1, f1 - f0) * 1000
         print(
-            f"bridge {'on ' if bridge else 'off'}: {f1 - f0} frames in {t1 - t0:.0f} s "
+            f"{label}: {f1 - f0} frames in {t1 - t0:.0f} s "
             f"({(f1 - f0) / (t1 - t0):.1f} fps), {c1 - c0:.1f} s CPU, "
-            f"{per_frame_ms:.2f} ms/frame, mqtt {mqtt}",
+            f"{per_frame_ms:.2f} ms/frame",
             flush=True,
         )
         return per_frame_ms
@@ -101,6 +109,20 @@ def measure(broker_port: int, bridge: bool, warmup_s: float, window_s: float) ->
         finally:
             with contextlib.suppress(ProcessLookupError):
                 os.killpg(proc.pid, signal.SIGKILL)  # the simulated Uno's process too
+
+
+def measure(broker_port: int, bridge: bool, warmup_s: float, window_s: float) -> float:
+    overrides = (
+        {
+            "FLOORNAV_MQTT__URL": f"mqtt://127.0.0.1:{broker_port}",
+            "FLOORNAV_MQTT__ROBOT_ID": "measure",
+        }
+        if bridge
+        else {}
+    )
+    return daemon_cpu_per_frame(
+        overrides, warmup_s, window_s, f"bridge {'on ' if bridge else 'off'}"
+    )
 
 
 def main() -> None:
