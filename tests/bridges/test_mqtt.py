@@ -767,7 +767,9 @@ def test_a_30_s_broker_outage_never_touches_driving(fleet: Fleet) -> None:
         assert rid in reconnected and reconnected[rid] < 5.0, reconnected
         assert protective_stops(during[rid]) == protective_stops(before[rid]), during[rid]
         assert "protective_stop" not in states[rid] and "fault" not in states[rid], states
-        assert during[rid]["distance_m"] - before[rid]["distance_m"] > 2.0  # it drove on
+        # It drove on: a stopped robot adds nothing; an exploring one also spends some of
+        # the 30 s turning on the spot, so the distance itself is not the point.
+        assert during[rid]["distance_m"] - before[rid]["distance_m"] > 0.5
         mqtt = d.status()["mqtt"]
         assert mqtt["reconnects"] == before[rid]["mqtt"]["reconnects"] + 1
         assert mqtt["last_error"]
