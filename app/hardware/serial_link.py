@@ -11,7 +11,9 @@ Layers, bottom up:
   ``BANNER``, protocol version check), sends ``STOP`` and ``SET_TELEMETRY``, then runs a
   reader and a heartbeat until the link breaks (read error, or silence), and reconnects
   with exponential backoff. At most one command is in flight (the Uno has a 64-byte
-  receive buffer). After any failure the commanded PWM is zero and stays zero until the
+  receive buffer), except ``STOP``: `UnoLink.stop_motors` sends it at once, beside a
+  command still waiting for its ACK, and drops any ``DRIVE`` that was queued before it.
+  After any failure the commanded PWM is zero and stays zero until the
   caller sends a new `UnoLink.drive` *after* the reconnect (a generation counter ties
   every command to the connection it was made on).
 
@@ -388,6 +390,8 @@ class LinkStats:
     rejected: int = 0  # ACKs with a non-OK status
     timeouts: int = 0  # commands without an ACK in time
     stale_acks: int = 0  # ACKs for no command in flight (late, after a timeout)
+    stops_ahead: int = 0  # STOPs sent beside a command still waiting for its ACK
+    drives_dropped: int = 0  # DRIVEs queued before a STOP, so never sent
     heartbeats: int = 0  # DRIVE re-sent or PING sent by the heartbeat
     crc_errors: int = 0  # frames from the device with a bad CRC
     garbage_bytes: int = 0  # bytes from the device outside any frame
@@ -497,6 +501,10 @@ class UnoLink:
         self._command: _Command | None = None
         self._lock = asyncio.Lock()  # one command in flight
         self._pending: _Pending | None = None
+        self._stop_lock = asyncio.Lock()  # one priority STOP in flight
+        self._stop_pending: _Pending | None = None
+        self._stop_generation = 0
+        """Counts `stop_motors` calls: a DRIVE queued before a stop is dropped."""
         self._seq = 0
         self._last_tx_s = 0.0
         self._last_drive_tx_s = 0.0
@@ -624,16 +632,28 @@ class UnoLink:
         payload = drive_payload(left_pwm, right_pwm)
         conn = self._connected()
         self._command = _Command(conn.epoch, left_pwm, right_pwm)
-        await self._request(conn, MsgType.DRIVE, payload)
+        await self._request(
+            conn, MsgType.DRIVE, payload, unless_stopped_since=self._stop_generation
+        )
 
     async def stop_motors(self) -> None:
-        """Command zero and send ``STOP``. When not connected there is nothing to send
-        (the firmware deadman has stopped the motors); it returns without error."""
+        """Command zero and send ``STOP`` at once, and wait for its ACK.
+
+        The STOP does not queue behind a command still waiting for its ACK (a lost DRIVE
+        ACK would hold it for `UnoLinkConfig.ack_timeout_s`): it is written beside it, and
+        a ``DRIVE`` that was queued before this call is dropped, never sent after the
+        STOP. When not connected there is nothing to send (the firmware deadman has
+        stopped the motors); it returns without error.
+        """
         self._command = None
+        self._stop_generation += 1
         conn = self._conn
         if conn is None or conn.failed.done() or self._status.state is not DeviceState.CONNECTED:
             return
-        await self._request(conn, MsgType.STOP)
+        async with self._stop_lock:
+            if self._lock.locked():
+                self.stats.stops_ahead += 1
+            await self._exchange(conn, MsgType.STOP, b"", priority=True)
 
     async def ping(self) -> float:
         """Send ``PING``; return the round trip in seconds."""
@@ -655,46 +675,74 @@ class UnoLink:
             )
         return conn
 
-    async def _request(self, conn: _Connection, msg_type: MsgType, payload: bytes = b"") -> Ack:
-        """Send one command and wait for its ACK, with at most one command in flight."""
+    async def _request(
+        self,
+        conn: _Connection,
+        msg_type: MsgType,
+        payload: bytes = b"",
+        *,
+        unless_stopped_since: int | None = None,
+    ) -> Ack | None:
+        """Send one command and wait for its ACK, with at most one command in flight.
+
+        With ``unless_stopped_since`` (a `_stop_generation` read when the command was
+        made), the command is dropped, and None returned, if `stop_motors` ran while it
+        waited for its turn: a DRIVE must never follow a later STOP onto the wire.
+        """
         async with self._lock:
-            if conn.failed.done():
-                raise NotConnectedError(f"link lost before sending {msg_type.name}") from (
-                    conn.failed.result()
-                )
-            self._seq = (self._seq + 1) & 0xFF
-            loop = asyncio.get_running_loop()
-            pending = _Pending(self._seq, time.perf_counter(), loop.create_future())
-            pending.future.add_done_callback(_retrieve_exception)
+            if unless_stopped_since is not None and unless_stopped_since != self._stop_generation:
+                self.stats.drives_dropped += 1
+                return None
+            return await self._exchange(conn, msg_type, payload, priority=False)
+
+    async def _exchange(
+        self, conn: _Connection, msg_type: MsgType, payload: bytes, *, priority: bool
+    ) -> Ack:
+        """Write one command and wait for its ACK. The caller holds `_lock` (or, for a
+        ``priority`` STOP, `_stop_lock`: its ACK is matched in its own slot)."""
+        if conn.failed.done():
+            raise NotConnectedError(f"link lost before sending {msg_type.name}") from (
+                conn.failed.result()
+            )
+        self._seq = (self._seq + 1) & 0xFF
+        loop = asyncio.get_running_loop()
+        pending = _Pending(self._seq, time.perf_counter(), loop.create_future())
+        pending.future.add_done_callback(_retrieve_exception)
+        if priority:
+            self._stop_pending = pending
+        else:
             self._pending = pending
+        try:
             try:
-                try:
-                    conn.transport.write(encode_frame(Frame(pending.seq, msg_type, payload)))
-                except LinkLostError as exc:
-                    self._fail(conn, exc)
-                    raise
-                now = time.monotonic()
-                self._last_tx_s = now
-                if msg_type is MsgType.DRIVE:
-                    self._last_drive_tx_s = now
-                self.stats.commands_sent += 1
-                ack, received_s = await self._await_ack(pending)
-            except TimeoutError:
-                self.stats.timeouts += 1
-                conn.consecutive_timeouts += 1
-                if conn.consecutive_timeouts >= self.config.max_consecutive_timeouts:
-                    self._fail(
-                        conn,
-                        LinkSilentError(
-                            f"{conn.consecutive_timeouts} commands in a row without ACK "
-                            f"from {self.port}"
-                        ),
-                    )
-                raise CommandTimeoutError(
-                    f"no ACK for {msg_type.name} (seq {pending.seq}) within "
-                    f"{self.config.ack_timeout_s * 1000:.0f} ms"
-                ) from None
-            finally:
+                conn.transport.write(encode_frame(Frame(pending.seq, msg_type, payload)))
+            except LinkLostError as exc:
+                self._fail(conn, exc)
+                raise
+            now = time.monotonic()
+            self._last_tx_s = now
+            if msg_type is MsgType.DRIVE:
+                self._last_drive_tx_s = now
+            self.stats.commands_sent += 1
+            ack, received_s = await self._await_ack(pending)
+        except TimeoutError:
+            self.stats.timeouts += 1
+            conn.consecutive_timeouts += 1
+            if conn.consecutive_timeouts >= self.config.max_consecutive_timeouts:
+                self._fail(
+                    conn,
+                    LinkSilentError(
+                        f"{conn.consecutive_timeouts} commands in a row without ACK "
+                        f"from {self.port}"
+                    ),
+                )
+            raise CommandTimeoutError(
+                f"no ACK for {msg_type.name} (seq {pending.seq}) within "
+                f"{self.config.ack_timeout_s * 1000:.0f} ms"
+            ) from None
+        finally:
+            if priority:
+                self._stop_pending = None
+            else:
                 self._pending = None
         conn.consecutive_timeouts = 0
         self.stats.acks += 1
@@ -923,13 +971,14 @@ class UnoLink:
         try:
             if frame.type == MsgType.ACK:
                 ack = Ack.parse(frame.payload)
-                pending = self._pending
-                if (
-                    pending is not None
-                    and pending.seq == ack.acked_seq
-                    and not pending.future.done()
-                ):
-                    pending.future.set_result((ack, received_s))
+                for pending in (self._pending, self._stop_pending):
+                    if (
+                        pending is not None
+                        and pending.seq == ack.acked_seq
+                        and not pending.future.done()
+                    ):
+                        pending.future.set_result((ack, received_s))
+                        break
                 else:
                     self.stats.stale_acks += 1
             elif frame.type == MsgType.TELEMETRY:
@@ -979,6 +1028,7 @@ class UnoLink:
         period_s = self.config.heartbeat_period_s
         while not conn.failed.done():
             command = self._command
+            generation = self._stop_generation
             moving = command is not None and command.epoch == conn.epoch and command.moving
             last_s = self._last_drive_tx_s if moving else self._last_tx_s
             wait_s = last_s + period_s - time.monotonic()
@@ -989,7 +1039,9 @@ class UnoLink:
                 self.stats.heartbeats += 1
                 if moving and command is not None:
                     payload = drive_payload(command.left_pwm, command.right_pwm)
-                    await self._request(conn, MsgType.DRIVE, payload)
+                    await self._request(
+                        conn, MsgType.DRIVE, payload, unless_stopped_since=generation
+                    )
                 else:
                     await self._request(conn, MsgType.PING)
             except (CommandTimeoutError, CommandRejectedError) as exc:

@@ -19,7 +19,11 @@ import pytest
 from app.hardware.interfaces import DeviceState
 from app.hardware.protocol import (
     MAX_FRAME,
+    PROTOCOL_VERSION,
+    Ack,
+    Banner,
     Frame,
+    FrameDecoder,
     MsgType,
     ProtocolError,
     encode_frame,
@@ -414,3 +418,129 @@ def test_config_refuses_heartbeats_slower_than_the_deadman() -> None:
         UnoLinkConfig(heartbeat_period_s=0.3)
     with pytest.raises(ValueError, match="silence_timeout_s"):
         UnoLinkConfig(silence_timeout_s=0.05)
+
+
+# -- a STOP never waits behind a command ------------------------------------------------
+
+
+class HeldDriveAcks:
+    """A `ByteTransport` with a scripted Uno that answers at once, except that it holds
+    back the ACKs of DRIVE while `hold_drive_acks` is set: a lost or slow ACK on a noisy
+    cable. It records every frame the host wrote, with ``time.monotonic()``."""
+
+    instances: ClassVar[list[HeldDriveAcks]] = []
+
+    def __init__(self) -> None:
+        self.hold_drive_acks = False
+        self.held: list[bytes] = []
+        self.frames: list[tuple[float, Frame]] = []
+        self._decoder = FrameDecoder()
+        self._replies: asyncio.Queue[bytes] = asyncio.Queue()
+        HeldDriveAcks.instances.append(self)
+
+    async def open(self, port: str, *, baudrate: int) -> None:
+        pass
+
+    async def read(self, timeout_s: float | None) -> bytes:
+        try:
+            async with asyncio.timeout(timeout_s):
+                return await self._replies.get()
+        except TimeoutError:
+            return b""
+
+    def write(self, data: bytes) -> None:
+        for frame in self._decoder.feed(data):
+            self.frames.append((time.monotonic(), frame))
+            if frame.type == MsgType.HELLO:
+                banner = Banner(PROTOCOL_VERSION, 2, "held-acks 1.0")
+                reply = encode_frame(Frame(frame.seq, MsgType.BANNER, banner.payload()))
+            else:
+                reply = encode_frame(Frame(frame.seq, MsgType.ACK, Ack(frame.seq, 0).payload()))
+            if frame.type == MsgType.DRIVE and self.hold_drive_acks:
+                self.held.append(reply)
+            else:
+                self._replies.put_nowait(reply)
+
+    def release(self) -> None:
+        for reply in self.held:
+            self._replies.put_nowait(reply)
+        self.held.clear()
+
+    def sent(self) -> list[MsgType]:
+        return [MsgType(frame.type) for _, frame in self.frames]
+
+    async def close(self) -> None:
+        pass
+
+
+@pytest.fixture
+async def held_link() -> AsyncIterator[tuple[UnoLink, HeldDriveAcks]]:
+    HeldDriveAcks.instances.clear()
+    # No telemetry (the scripted Uno sends none) and a long heartbeat: only the test's
+    # own commands go out.
+    config = UnoLinkConfig(
+        telemetry_period_ms=0, heartbeat_period_s=0.15, silence_timeout_s=5.0, ack_timeout_s=0.09
+    )
+    link = UnoLink("fake://held", config=config, transport_factory=HeldDriveAcks)
+    await link.start()
+    try:
+        assert link.state is DeviceState.CONNECTED, link.status()
+        yield link, HeldDriveAcks.instances[-1]
+    finally:
+        await link.stop()
+
+
+async def drive_written(device: HeldDriveAcks) -> None:
+    # Loop turns, not wall time: the DRIVE's 90 ms ACK timeout must not run out first.
+    for _ in range(100):
+        if MsgType.DRIVE in device.sent():
+            return
+        await asyncio.sleep(0)
+    raise AssertionError("the DRIVE was not written")
+
+
+async def test_stop_goes_out_at_once_beside_a_drive_waiting_for_its_ack(
+    held_link: tuple[UnoLink, HeldDriveAcks],
+) -> None:
+    link, device = held_link
+    device.hold_drive_acks = True
+    drive = asyncio.create_task(link.drive(100, 100))
+    await drive_written(device)
+    asked_s = time.monotonic()
+    await link.stop_motors()  # written and ACKed while the DRIVE still waits for its ACK
+    print(f"\nSTOP beside an unacked DRIVE: ACKed {(time.monotonic() - asked_s) * 1000:.1f} ms")
+    assert not drive.done()
+    assert link.stats.stops_ahead == 1
+    device.release()
+    await drive
+    assert link.commanded == (0, 0)
+    assert link.stats.stale_acks == 0 and link.stats.timeouts == 0
+
+
+async def test_a_drive_queued_before_a_stop_is_never_sent_after_it(
+    held_link: tuple[UnoLink, HeldDriveAcks],
+) -> None:
+    link, device = held_link
+    device.hold_drive_acks = True
+    first = asyncio.create_task(link.drive(100, 100))
+    await drive_written(device)
+    queued = asyncio.create_task(link.drive(120, 120))  # waits for the first one's ACK
+    await asyncio.sleep(0)
+    await link.stop_motors()
+    device.release()
+    await asyncio.gather(first, queued)
+    await asyncio.sleep(0.2)  # a heartbeat, which must not re-send the old DRIVE either
+    sent = device.sent()
+    last_stop = len(sent) - 1 - sent[::-1].index(MsgType.STOP)
+    assert MsgType.DRIVE not in sent[last_stop:], sent
+    assert link.stats.drives_dropped == 1
+    assert link.commanded == (0, 0)
+
+
+async def test_a_drive_after_the_stop_is_sent(held_link: tuple[UnoLink, HeldDriveAcks]) -> None:
+    link, device = held_link
+    await link.stop_motors()
+    await link.drive(50, 50)
+    assert device.sent()[-1] is MsgType.DRIVE
+    assert link.commanded == (50, 50)
+    assert link.stats.drives_dropped == 0
