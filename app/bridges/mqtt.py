@@ -67,6 +67,7 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 
 from app.channels import wait_event
 from app.config import MqttConfig
+from app.control.teleop_limits import TeleopAngularSpeed, TeleopLinearSpeed
 from app.fileio import json_safe
 from app.runtime import CommandRefusedError
 from app.runtime.service_status import register_status
@@ -112,8 +113,8 @@ class _Command(BaseModel):
 
 class TeleopCommand(_Command):
     cmd: Literal["teleop"]
-    v_m_s: Annotated[float, Field(ge=-2.0, le=2.0, allow_inf_nan=False)]
-    omega_rad_s: Annotated[float, Field(ge=-10.0, le=10.0, allow_inf_nan=False)]
+    v_m_s: TeleopLinearSpeed
+    omega_rad_s: TeleopAngularSpeed
     take_over: bool = False
 
 

@@ -19,6 +19,7 @@ from pydantic import (
     field_validator,
 )
 
+from app.control.teleop_limits import TeleopAngularSpeed, TeleopLinearSpeed
 from app.logs import escape_control
 from app.messages import State
 
@@ -79,8 +80,8 @@ class TeleopRequest(Body):
     """One hand-driving command; repeat it at >= 10 Hz (the mux lets go after
     ``safety.teleop_timeout_s``, 0.5 s by default)."""
 
-    v_m_s: Annotated[float, Field(ge=-2.0, le=2.0, allow_inf_nan=False)]
-    omega_rad_s: Annotated[float, Field(ge=-10.0, le=10.0, allow_inf_nan=False)]
+    v_m_s: TeleopLinearSpeed
+    omega_rad_s: TeleopAngularSpeed
     driver: DriverName = "api"
     take_over: bool = False
 

@@ -48,6 +48,7 @@ from pydantic import BaseModel, ConfigDict, Field, TypeAdapter, ValidationError
 from starlette.websockets import WebSocketDisconnect
 
 from app.channels import LatestSlot, SlotReader
+from app.control.teleop_limits import TeleopAngularSpeed, TeleopLinearSpeed
 from app.runtime import CommandRefusedError
 from app.web.auth import offered_subprotocol, origin_allowed, token_matches, websocket_token
 from app.web.context import WebContext, json_safe
@@ -71,8 +72,8 @@ class _Message(BaseModel):
 
 class TeleopMessage(_Message):
     type: Literal["teleop"]
-    v_m_s: Annotated[float, Field(ge=-2.0, le=2.0, allow_inf_nan=False)]
-    omega_rad_s: Annotated[float, Field(ge=-10.0, le=10.0, allow_inf_nan=False)]
+    v_m_s: TeleopLinearSpeed
+    omega_rad_s: TeleopAngularSpeed
     take_over: bool = False
 
 
