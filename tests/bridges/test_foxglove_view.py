@@ -150,6 +150,26 @@ class FoxgloveClient:
         raise AssertionError("unreachable")
 
 
+@contextlib.asynccontextmanager
+async def logging_meanwhile(text: str, period_s: float = 0.2) -> AsyncIterator[None]:
+    """Log ``text`` now and every ``period_s`` until the block ends. The SDK drops what a
+    channel logs before it has processed the client's subscribe (on its own thread), so
+    one line logged right after subscribing may never reach /log on a busy machine."""
+
+    async def repeat() -> None:
+        while True:
+            logging.getLogger("floornav.test").warning(text)
+            await asyncio.sleep(period_s)
+
+    task = asyncio.create_task(repeat())
+    try:
+        yield
+    finally:
+        task.cancel()
+        with contextlib.suppress(asyncio.CancelledError):
+            await task
+
+
 def grid_cells(grid: Any) -> tuple[int, int, bytes]:
     """(columns, rows, data) of a decoded foxglove.Grid."""
     rows = len(grid.data) // grid.row_stride
@@ -351,8 +371,8 @@ async def test_every_topic_decodes_and_the_view_stops_on_request() -> None:
         port = view.port
         async with FoxgloveClient.connect(port) as client:
             await client.subscribe(list(SCHEMAS))
-            logging.getLogger("floornav.test").warning("fake daemon says hi")
-            got = await client.first_of_each(set(SCHEMAS), timeout_s=10.0)
+            async with logging_meanwhile("fake daemon says hi"):
+                got = await client.first_of_each(set(SCHEMAS), timeout_s=10.0)
             image = cv2.imdecode(np.frombuffer(got[CAMERA_TOPIC].data, np.uint8), cv2.IMREAD_COLOR)
             assert image.shape == (480, 640, 3)
             assert (
@@ -422,8 +442,8 @@ async def test_a_foxglove_client_sees_the_daemon_and_cannot_change_it() -> None:
                 assert channel["encoding"] == "protobuf"
 
             await client.subscribe(list(SCHEMAS))
-            logging.getLogger("floornav.test").warning("hello foxglove")
-            got = await client.first_of_each(set(SCHEMAS), timeout_s=10.0)
+            async with logging_meanwhile("hello foxglove"):
+                got = await client.first_of_each(set(SCHEMAS), timeout_s=10.0)
 
             camera = got[CAMERA_TOPIC]
             assert (camera.format, camera.frame_id) == ("jpeg", "camera")
