@@ -184,14 +184,18 @@ class FloorMemory:
         cells = index[use]
         if cells.size == 0:
             return
-        n = self._sightings.size
-        counts = np.bincount(cells, minlength=n)
-        hit = np.flatnonzero(counts)
+        # Count over the span of flat indices this frame touches, not the whole world
+        # grid: four world-sized bincounts a frame were mapping's largest cost (py-spy).
+        first = int(cells.min())
+        local = cells - first
+        counts = np.bincount(local)
+        hit_local = np.flatnonzero(counts)
+        hit = hit_local + first
         colours = patch_bgr[use].astype(np.float64)
         means = np.empty((hit.size, 3), dtype=np.float32)
         for ch in range(3):
-            sums = np.bincount(cells, weights=colours[:, ch], minlength=n)
-            means[:, ch] = sums[hit] / counts[hit]
+            sums = np.bincount(local, weights=colours[:, ch], minlength=counts.size)
+            means[:, ch] = sums[hit_local] / counts[hit_local]
         seen = self._sightings[hit].astype(np.float32)
         rate = np.maximum(np.float32(self.params.colour_rate), 1.0 / (seen + 1.0))
         self._colour[hit] += (means - self._colour[hit]) * rate[:, None]

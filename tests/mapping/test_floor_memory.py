@@ -210,3 +210,28 @@ def test_standing_pixels_unlearn_only_the_colour_most_of_them_have() -> None:
     for _ in range(20):
         memory.mark_standing(index.ravel()[:10], floor_box)
     assert memory.appearances() == () and memory.unlearned == 1
+
+
+def test_observed_colours_are_each_cells_running_mean_of_its_pixels() -> None:
+    """Exact answer from a per-cell loop: the first sighting sets the colour, the second
+    blends at rate max(colour_rate, 1 / (sightings + 1)); cells not hit stay as they were."""
+    memory = FloorMemory(WORLD)
+    rng = np.random.default_rng(5)
+    rate = memory.params.colour_rate
+    expected: dict[int, np.ndarray] = {}
+    sightings: dict[int, int] = {}
+    for pose in (Pose2D(-1.0, 0.3, 0.2), Pose2D(-0.8, 0.2, 0.4)):
+        index = patch_world_index(PATCH, WORLD, pose)
+        patch_bgr = rng.integers(0, 256, (*PATCH.shape, 3), dtype=np.uint8)
+        patch = np.where(rng.random(PATCH.shape) < 0.2, UNSEEN, FLOOR).astype(np.uint8)
+        near = rng.random(PATCH.shape) < 0.8
+        memory.observe_colours(patch_bgr, patch, index, near)
+        use = near & (patch != UNSEEN) & (index >= 0)
+        for cell in np.unique(index[use]):
+            mean = patch_bgr[use & (index == cell)].astype(np.float64).mean(axis=0)
+            seen = sightings.get(int(cell), 0)
+            old = expected.get(int(cell), np.zeros(3))
+            expected[int(cell)] = old + (mean - old) * max(rate, 1.0 / (seen + 1))
+            sightings[int(cell)] = seen + 1
+    cells = np.array(sorted(expected))
+    assert np.allclose(memory.colour_of(cells), np.array([expected[c] for c in cells]), atol=1e-3)
