@@ -490,11 +490,14 @@ async def held_link() -> AsyncIterator[tuple[UnoLink, HeldDriveAcks]]:
         await link.stop()
 
 
-async def drive_written(device: HeldDriveAcks) -> None:
+async def unacked_drive(link: UnoLink, device: HeldDriveAcks, pwm: int) -> asyncio.Task[None]:
+    """A DRIVE written to the device, its ACK held back: the task still waits for it."""
+    device.hold_drive_acks = True
+    drive = asyncio.create_task(link.drive(pwm, pwm))
     # Loop turns, not wall time: the DRIVE's 90 ms ACK timeout must not run out first.
     for _ in range(100):
         if MsgType.DRIVE in device.sent():
-            return
+            return drive
         await asyncio.sleep(0)
     raise AssertionError("the DRIVE was not written")
 
@@ -503,9 +506,7 @@ async def test_stop_goes_out_at_once_beside_a_drive_waiting_for_its_ack(
     held_link: tuple[UnoLink, HeldDriveAcks],
 ) -> None:
     link, device = held_link
-    device.hold_drive_acks = True
-    drive = asyncio.create_task(link.drive(100, 100))
-    await drive_written(device)
+    drive = await unacked_drive(link, device, 100)
     asked_s = time.monotonic()
     await link.stop_motors()  # written and ACKed while the DRIVE still waits for its ACK
     print(f"\nSTOP beside an unacked DRIVE: ACKed {(time.monotonic() - asked_s) * 1000:.1f} ms")
@@ -521,9 +522,7 @@ async def test_a_drive_queued_before_a_stop_is_never_sent_after_it(
     held_link: tuple[UnoLink, HeldDriveAcks],
 ) -> None:
     link, device = held_link
-    device.hold_drive_acks = True
-    first = asyncio.create_task(link.drive(100, 100))
-    await drive_written(device)
+    first = await unacked_drive(link, device, 100)
     queued = asyncio.create_task(link.drive(120, 120))  # waits for the first one's ACK
     await asyncio.sleep(0)
     await link.stop_motors()
