@@ -29,6 +29,9 @@ The robot is a circle of ``radius_m`` in the world's plan frame. When a step wou
 it touch a wall or a box, it stops at the contact (found by bisection along the arc),
 both wheels stop (stalled: encoders count only the travel before contact) and
 `SimRobot.collisions` counts the new contact. It can always turn in place or back away.
+A contact ends once the robot is `CONTACT_RELEASE_M` clear of everything: a robot that
+scrubs along a box while turning on the spot (slip moves its centre by fractions of a
+millimetre) is in one collision, not in one per step.
 
 Thread-safe: ``apply_pwm``/``read_encoders`` come from the simulated Uno's thread,
 ``step`` from whoever owns the clock (`SimRobot.start` runs one).
@@ -46,6 +49,10 @@ from app.mapping.frames import Pose2D
 from app.sim.world import DEFAULT_ROBOT_RADIUS_M, World
 
 PWM_MAX = 255
+
+
+CONTACT_RELEASE_M = 0.01
+"""How far from everything a robot in contact must get before a new contact counts."""
 
 
 @dataclass(frozen=True)
@@ -263,11 +270,12 @@ class SimRobot:
                 if not self._in_contact:
                     self._collisions += 1
                 self._in_contact = True
-            else:
-                self._in_contact = False
             self._pose = arc_pose(
                 start, travels[0] * fraction, travels[1] * fraction, p.wheel_base_m
             )
+            if fraction == 1.0 and self._in_contact and self.world is not None:
+                clearance = self.world.clearance_m(self._pose.x_m, self._pose.y_m)
+                self._in_contact = clearance < p.radius_m + CONTACT_RELEASE_M
             for i in range(2):
                 turned = rotations[i] * fraction
                 self._travel_m[i] += turned

@@ -6,17 +6,19 @@ safe-zone corners drag, and a phone drives with a press-and-hold pad.
 
 Stop latencies are measured from the action (the click, the key, the finger lifted) to
 the simulated Uno's motor PWM reading 0/0: the Uno runs in its own process and reports
-every PWM change to `SimulatedUnoProcess.pwm`; a thread here polls it every 0.5 ms.
-The budget is the issue's 100 ms.
+every PWM change to its host side, where the report is timestamped (`time_to_zero`).
+The issue's target is 100 ms; what is asserted is `StopTiming.check`.
 """
 
 from __future__ import annotations
 
 import asyncio
+import itertools
 import re
 import threading
 import time
 from collections.abc import Callable, Coroutine, Iterator
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
 
@@ -38,6 +40,9 @@ pytestmark = pytest.mark.browser
 # 250 ms deadman, which would stop the motors anyway once the host went quiet.
 STOP_TARGET_MS = 100.0
 STOP_BUDGET_MS = 250.0
+# The simulated Uno reports telemetry every 50 ms: a gap of three periods means its
+# process was not scheduled (a real Uno is never starved by the host's load).
+UNO_STARVED_GAP_MS = 150.0
 CLOCK = re.compile(r"\d\d:\d\d:\d\d")
 PHONE: ViewportSize = {"width": 390, "height": 844}
 measured: dict[str, float] = {}
@@ -134,9 +139,53 @@ class StopTrace:
                 vars(runtime.shared.link).pop(name, None)
 
 
+@dataclass(frozen=True)
+class StopTiming:
+    """One stop's timing, in ms after the action.
+
+    total_ms : until the simulated Uno's motors got 0/0
+    host_ms : until the daemon wrote STOP (or DRIVE 0/0) on the serial line, the part the
+        daemon answers for (None: it never did; the Uno stopped on its own)
+    uno_gap_ms : the longest silence between the simulated Uno's telemetry frames from
+        just before the action until the stop
+    """
+
+    what: str
+    total_ms: float
+    host_ms: float | None
+    uno_gap_ms: float
+
+    def check(self) -> None:
+        """The stop must beat `STOP_BUDGET_MS` end to end. On a loaded 2-core machine the
+        simulated Uno's process can be starved for a few hundred ms (seen in CI: STOP on
+        the wire at +43 ms, PWM 0/0 at +307 ms, the child silent meanwhile); then the
+        daemon's part, press to frame on the wire, must beat the budget instead, and the
+        excess must be the child's silence, not the daemon's."""
+        if self.total_ms <= STOP_BUDGET_MS:
+            return
+        assert self.host_ms is not None, (
+            f"{self.what}: {self.total_ms:.1f} ms > {STOP_BUDGET_MS} ms and the daemon never "
+            "wrote a zero frame"
+        )
+        assert self.host_ms <= STOP_BUDGET_MS, (
+            f"{self.what}: the daemon put the stop on the wire after {self.host_ms:.1f} ms "
+            f"> {STOP_BUDGET_MS} ms"
+        )
+        assert self.uno_gap_ms >= UNO_STARVED_GAP_MS, (
+            f"{self.what}: {self.total_ms:.1f} ms > {STOP_BUDGET_MS} ms although the "
+            f"simulated Uno was running (longest telemetry gap {self.uno_gap_ms:.0f} ms); "
+            f"the stop was on the wire at +{self.host_ms:.0f} ms"
+        )
+        print(
+            f"{self.what}: over the budget end to end because the simulated Uno's process "
+            f"was starved ({self.uno_gap_ms:.0f} ms without telemetry); the daemon's part "
+            f"took {self.host_ms:.1f} ms"
+        )
+
+
 def time_to_zero(
     server: LiveServer, act: Callable[[], object], what: str, page: Page | None = None
-) -> float:
+) -> StopTiming:
     """Milliseconds from the start of ``act`` until the simulated Uno's motors get 0/0;
     printed with where the time went.
 
@@ -159,6 +208,16 @@ def time_to_zero(
             stopped.set()
 
     vars(plant)["apply_pwm"] = traced_apply_pwm
+    link = server.runtime.shared.link
+    assert link is not None
+    on_telemetry = link._on_telemetry_frame
+    telemetry_at: list[float] = []
+
+    def traced_on_telemetry(conn: Any, data: Any) -> None:
+        telemetry_at.append(time.time())
+        on_telemetry(conn, data)
+
+    vars(link)["_on_telemetry_frame"] = traced_on_telemetry
     try:
         with StopTrace(server) as trace:
             start = time.time()
@@ -166,6 +225,7 @@ def time_to_zero(
             stopped.wait(3.0)
     finally:
         vars(plant).pop("apply_pwm", None)
+        vars(link).pop("_on_telemetry_frame", None)
     assert zero_at, f"{what}: the Uno's PWM is still {uno_pwm(server)} 3 s later"
     marks = dict(trace.marks)
     if page is not None:
@@ -183,7 +243,23 @@ def time_to_zero(
     measured[what] = latency_ms
     over = " (over the 100 ms target)" if latency_ms > STOP_TARGET_MS else ""
     print(f"\n{what}: PWM 0/0 after {latency_ms:.1f} ms{over} ({steps} ms)")
-    return latency_ms
+    wire = marks.get("zero frame on the wire")
+    # Gaps between arrivals, bounded by the action and the stop (the first arrival
+    # after the stop closes the last gap; none at all means silence throughout).
+    edges = [start, *(t for t in telemetry_at if start < t <= zero_at[0]), zero_at[0]]
+    after = [t for t in telemetry_at if t > zero_at[0]]
+    if after:
+        edges[-1] = after[0]
+    before = [t for t in telemetry_at if t <= start]
+    if before:
+        edges[0] = before[-1]
+    gap_ms = max((b - a) * 1000 for a, b in itertools.pairwise(edges))
+    return StopTiming(
+        what,
+        latency_ms,
+        None if wire is None else (wire - start) * 1000,
+        gap_ms,
+    )
 
 
 class OtherDriver:
@@ -338,7 +414,7 @@ def test_estop_stops_within_100_ms(
         finally:
             page.keyboard.up("ArrowLeft")
     wait_for(lambda: rig.status()["state"] == "estopped", 2.0, "state estopped")
-    assert latency <= STOP_BUDGET_MS, f"{what}: {latency:.1f} ms > {STOP_BUDGET_MS} ms"
+    latency.check()
     expect(page.locator("#stop-estop")).to_be_visible()
     if situation == "token_dialog":
         expect(page.locator("#token-dialog")).to_be_visible()  # Space did not click Close
@@ -368,7 +444,7 @@ def test_estop_without_a_token_or_a_control_socket(page: Page, rig: LiveServer) 
     estop_is_on_top(page)
     with OtherDriver(rig):
         latency = time_to_zero(rig, click_estop(page), "E-STOP by POST, no token, no socket", page)
-    assert latency <= STOP_BUDGET_MS
+    latency.check()
     assert page.evaluate("window.floornav.estops.map((e) => e.via)") == ["post"]
     wait_for(lambda: rig.status()["state"] == "estopped", 2.0, "state estopped")
     expect(page.locator("#control-message")).to_have_text("E-STOP latched")
@@ -477,7 +553,7 @@ def test_phone_pad_drives_while_held_and_stops_on_release(
             size = save_screenshot(page, screenshots / "phone-driving.png")
             assert size < MAX_BYTES
             latency = time_to_zero(rig, finger.lift, "pad released", page)
-        assert latency <= STOP_BUDGET_MS, f"let go: {latency:.1f} ms > {STOP_BUDGET_MS} ms"
+        latency.check()
         wait_for(lambda: rig.status()["teleop_driver"] is None, 1.0, "teleop released")
 
         # Hidden page (another app in front) while the finger is down: it stops too.
@@ -492,7 +568,7 @@ def test_phone_pad_drives_while_held_and_stops_on_release(
             latency = time_to_zero(
                 rig, lambda: page.evaluate(hide), "page hidden while driving", page
             )
-        assert latency <= STOP_BUDGET_MS
+        latency.check()
     finally:
         context.close()
 

@@ -1,6 +1,12 @@
 """A short exploration on the shipped config: the robot drives itself, never collides,
-and the map it builds agrees with the floor plan (the full 40 s figures are in the
-README; this guards against regressions in CI)."""
+and the map it builds agrees with the floor plan (the longer runs' figures are in
+docs/daemon-runs.md and docs/exploration.md; this guards against regressions in CI).
+
+Twenty seconds of real-time driving do not repeat exactly (which frames the perception
+takes depends on scheduling), so the bounds sit below what the shipped code spreads
+over: in 15 runs on a quiet 2-core machine map IoU was 0.772-0.840 (median 0.81) and
+free-cell precision 0.925-0.978; on the loaded CI machine 0.770 and 0.782 were seen.
+A broken camera model or map update costs far more than that."""
 
 from __future__ import annotations
 
@@ -29,7 +35,8 @@ async def test_twenty_seconds_of_exploration() -> None:
     assert report["collisions"] == 0
     assert report["final_motor_pwm"] == [0, 0]
     assert report["distance_m"] > 0.5
-    assert report["map_iou"] >= 0.8
+    assert report["map_iou"] >= 0.72
+    assert report["map_truth"]["free_precision"] >= 0.88
     assert report["coverage_ratio"] >= 0.2
     assert report["fps"] >= 20
 
