@@ -150,3 +150,59 @@ def test_the_simulated_robot_driving_into_a_wall_stalls_and_nothing_else_does() 
                     assert stall.forward
     assert contact_s is not None, "the robot never reached the wall"
     assert stalled_s is not None and contact_s < stalled_s <= contact_s + 0.5
+
+
+# Telemetry recorded from the simulated robot in a daemon run (Uno uptime s, encoder
+# counts, PWM). A spin turn reversing: the left wheel still turns forwards for 0.2 s
+# after its PWM went negative (the samples before the window show the old direction).
+SPIN_REVERSAL = [
+    (18.371, (3760, 1640), (90, -90)),
+    (18.421, (3775, 1632), (70, -70)),
+    (18.471, (3787, 1625), (50, -50)),
+    (18.521, (3796, 1620), (-34, 34)),
+    (18.571, (3828, 1644), (-45, 45)),
+    (18.621, (3838, 1653), (-54, 54)),
+    (18.671, (3843, 1660), (-64, 64)),
+    (18.721, (3843, 1667), (-77, 77)),
+    (18.771, (3840, 1674), (-90, 90)),
+    (18.821, (3830, 1686), (-98, 98)),
+    (18.872, (3822, 1695), (-98, 98)),
+    (18.921, (3810, 1707), (-98, 98)),
+    (18.971, (3800, 1718), (-98, 98)),
+    (19.024, (3783, 1735), (-98, 98)),
+]
+# Driving into the floor-coloured box: both wheels held at PWM ~190 from 35.52 s.
+INTO_A_BOX = [
+    (35.171, (6440, 5390), (190, 170)),
+    (35.221, (6456, 5403), (192, 172)),
+    (35.271, (6472, 5416), (193, 174)),
+    (35.321, (6488, 5429), (194, 175)),
+    (35.371, (6504, 5442), (195, 176)),
+    (35.421, (6520, 5455), (196, 176)),
+    (35.471, (6536, 5468), (196, 176)),
+    (35.521, (6558, 5486), (194, 179)),
+    (35.571, (6558, 5486), (194, 180)),
+    (35.621, (6558, 5486), (194, 180)),
+    (35.672, (6558, 5486), (194, 180)),
+    (35.721, (6558, 5486), (194, 180)),
+    (35.771, (6558, 5486), (194, 180)),
+    (35.822, (6558, 5486), (194, 180)),
+    (35.871, (6558, 5486), (194, 180)),
+    (35.922, (6558, 5486), (194, 180)),
+    (35.972, (6558, 5486), (194, 180)),
+    (36.022, (6558, 5486), (194, 180)),
+]
+
+
+def test_recorded_spin_reversal_is_not_a_stall() -> None:
+    detector = StallDetector(DRIVE)
+    assert [detector.observe(*sample) for sample in SPIN_REVERSAL] == [None] * len(SPIN_REVERSAL)
+
+
+def test_recorded_push_into_a_box_is_a_stall_within_half_a_second() -> None:
+    detector = StallDetector(DRIVE)
+    seen = [(t, detector.observe(t, ticks, pwm)) for t, ticks, pwm in INTO_A_BOX]
+    first = next(t for t, stall in seen if stall is not None)
+    assert 35.521 < first <= 36.022
+    stall = seen[-1][1]
+    assert stall is not None and stall.forward and stall.moved_m < 0.01
