@@ -27,8 +27,7 @@ ideal one above.
 
 The robot is a circle of ``radius_m`` in the world's plan frame. When a step would make
 it touch a wall or a box, it stops at the contact (found by bisection along the arc),
-the wheels keep only their turning part (stalled forwards: a straight push stops both,
-and the encoders count only the travel before contact plus the turning) and
+both wheels stop (stalled: encoders count only the travel before contact) and
 `SimRobot.collisions` counts the new contact. It can always turn in place or back away.
 A contact ends once the robot is `CONTACT_RELEASE_M` clear of everything: a robot that
 scrubs along a box while turning on the spot (slip moves its centre by fractions of a
@@ -266,24 +265,19 @@ class SimRobot:
             travels = self._ground_travels(rotations, accel, dt_s) if p.slips else rotations
             start = self._pose
             fraction = self._free_fraction(start, travels[0], travels[1])
-            # Past the contact only the step's turning goes on: a round robot spins on
-            # the spot against what holds it (its centre stays, so it gets no closer).
-            spin = [0.0, 0.0]
             if fraction < 1.0:
-                half = (rotations[1] - rotations[0]) / 2 * (1.0 - fraction)
-                spin = [-half, half]
-                spin_speed = (self._speed[1] - self._speed[0]) / 2
-                self._speed = [-spin_speed, spin_speed]
+                self._speed = [0.0, 0.0]
                 if not self._in_contact:
                     self._collisions += 1
                 self._in_contact = True
-            contact = arc_pose(start, travels[0] * fraction, travels[1] * fraction, p.wheel_base_m)
-            self._pose = arc_pose(contact, spin[0], spin[1], p.wheel_base_m)
+            self._pose = arc_pose(
+                start, travels[0] * fraction, travels[1] * fraction, p.wheel_base_m
+            )
             if fraction == 1.0 and self._in_contact and self.world is not None:
                 clearance = self.world.clearance_m(self._pose.x_m, self._pose.y_m)
                 self._in_contact = clearance < p.radius_m + CONTACT_RELEASE_M
             for i in range(2):
-                turned = rotations[i] * fraction + spin[i]
+                turned = rotations[i] * fraction
                 self._travel_m[i] += turned
                 if p.encoder_tick_noise > 0:
                     ticks = abs(turned) * self._ticks_per_m()
