@@ -303,11 +303,10 @@ class SimRobot:
         return travels
 
     def _clear(self, pose: Pose2D, from_clearance: float) -> bool:
-        """Is ``pose`` collision-free? Moving away from contact, or along it (a round
-        robot turning on the spot against a wall), is always allowed."""
+        """Is ``pose`` collision-free? Moving away from contact is always allowed."""
         assert self.world is not None
         clearance = self.world.clearance_m(pose.x_m, pose.y_m)
-        return clearance >= self.params.radius_m or clearance >= from_clearance
+        return clearance >= self.params.radius_m or clearance > from_clearance
 
     def _free_fraction(self, start: Pose2D, left_m: float, right_m: float) -> float:
         """Largest fraction in [0, 1] of the step's arc the robot can travel."""

@@ -158,17 +158,6 @@ def test_scrubbing_along_a_wall_is_one_collision() -> None:
     assert robot.collisions == 2
 
 
-def test_a_round_robot_against_a_wall_turns_on_the_spot() -> None:
-    world = parse_world(MINIMAL)
-    robot = SimRobot(world, PARAMS)  # radius 0.15, wall at x = 4
-    _drive(robot, 255, 255, 10.0, dt=0.05)
-    x_m = robot.pose.x_m
-    _drive(robot, -150, 150, 0.5)
-    assert robot.pose.theta_rad > 0.5
-    assert robot.pose.x_m == pytest.approx(x_m, abs=1e-9)
-    assert robot.collisions == 1
-
-
 def test_collision_with_box_no_tunnelling() -> None:
     world = parse_world(MINIMAL + "[[boxes]]\ncenter_m = [2.0, 1.0]\nsize_m = [0.02, 0.5]\n")
     robot = SimRobot(world, PARAMS)
