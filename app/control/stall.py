@@ -37,20 +37,15 @@ class StallParams:
         is judged (a wheel asked to creep proves nothing)
     max_moved_fraction : a wheel that turned less than this share of its commanded travel
         is stalled
-    settle_s : a wheel commanded the other way within this span before the window is not
-        judged (still braking from the old direction, it turns the wrong way at first)
     """
 
     window_s: float = 0.5
     min_commanded_m: float = 0.05
     max_moved_fraction: float = 0.2
-    settle_s: float = 0.3
 
     def __post_init__(self) -> None:
         if self.window_s <= 0:
             raise ValueError(f"window_s must be > 0, got {self.window_s}")
-        if self.settle_s < 0:
-            raise ValueError(f"settle_s must be >= 0, got {self.settle_s}")
         if self.min_commanded_m <= 0:
             raise ValueError(f"min_commanded_m must be > 0, got {self.min_commanded_m}")
         if not 0 < self.max_moved_fraction < 1:
@@ -113,33 +108,23 @@ class StallDetector:
         if samples and time_s <= samples[-1].time_s:
             samples.clear()  # time went back: a new clock, a new history
         samples.append(_Sample(time_s, ticks, pwm))
-        # Keep the newest sample at or before the settling span's start (so the span is
-        # full); the window is the part from the newest sample at or before its start.
-        params = self.params
-        while len(samples) >= 2 and samples[1].time_s <= time_s - params.window_s - params.settle_s:
+        # Keep the newest sample at or before the window's start, so the window is full.
+        start = time_s - self.params.window_s
+        while len(samples) >= 2 and samples[1].time_s <= start:
             samples.popleft()
-        start = time_s - params.window_s
-        window = [
-            x
-            for k, x in enumerate(samples)
-            if k + 1 == len(samples) or samples[k + 1].time_s > start
-        ]
-        first = window[0]
+        first = samples[0]
         span_s = time_s - first.time_s
-        if span_s < params.window_s * 0.9:
+        if span_s < self.params.window_s * 0.9:
             return None
         worst: Stall | None = None
         for i, name in enumerate(("left", "right")):
-            signs = {(x.pwm[i] > 0) - (x.pwm[i] < 0) for x in samples}
-            if {1, -1} <= signs:
-                # Reversed within the window or just before it: the wheel may still be
-                # turning the old way (the motor's lag), which proves nothing.
-                continue
             steps = [
                 # The PWM reported with a sample is what drives the wheel until the next.
                 pwm_to_speed_m_s(a.pwm[i], self.drive) * (b.time_s - a.time_s)
-                for a, b in itertools.pairwise(window)
+                for a, b in itertools.pairwise(samples)
             ]
+            if any(x > 0 for x in steps) and any(x < 0 for x in steps):
+                continue  # reversed within the window: the motor's lag proves nothing
             commanded = abs(sum(steps))
             if commanded < self.params.min_commanded_m:
                 continue
