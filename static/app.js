@@ -251,7 +251,6 @@ const PROTECTIVE_CAUSES = {
   link: "Uno link",
   camera: "camera",
   stale: "perception or map too old",
-  stall: "wheels stalled (ran into something)",
 };
 
 // A failed calibration stops autonomy; shown until autonomy runs again (a later

@@ -15,7 +15,6 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.config import CameraConfig, MappingConfig
-from app.mapping.bumps import bump_cells
 from app.mapping.calibration import FloorCalibration
 from app.mapping.floor_memory import FloorMemory, patch_world_index
 from app.mapping.frames import FLOOR, NOT_FLOOR, GroundGrid, Pose2D
@@ -170,9 +169,6 @@ class GroundMapper:
         self.frontier_params = frontier_params(mapping)
         self.blind_zone = blind_zone_cells(self.birdseye, mapping.robot_radius_m)
         self.memory = FloorMemory(self.grid.world_grid)
-        self.bumped = np.zeros(self.grid.world_grid.shape, dtype=np.bool_)
-        """World cells where a stall showed something the camera missed (`mark_bump`):
-        not floor in every frame until the robot's footprint covers them."""
         x, _ = self.birdseye.grid.cell_centers()
         # Colours come only from cells the camera sees (the blind zone is floor by
         # assumption, but has no colour).
@@ -261,41 +257,8 @@ class GroundMapper:
             patch[standing] = NOT_FLOOR
         memory.drive_over(T_world_robot, self.mapping.robot_radius_m)
         corrected = memory.correct_patch(patch, index)
-        bumped = self.bumped.any() and self._apply_bumps(patch, index, T_world_robot)
         summary = self.grid.update(patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot)
-        if bumped:
-            # Rays that start in a bump carry no evidence (nothing is seen in front of
-            # them), so the map holds the bump itself: occupied, whatever came before.
-            self.grid.log_odds[self.bumped] = self.grid.params.clamp_max
         return MapUpdate(patch, summary, corrected, correction, match_s)
-
-    def mark_bump(self, T_world_robot: Pose2D, *, forward: bool) -> int:
-        """The wheels stalled at ``T_world_robot`` (pushing forwards or backwards):
-        something stands in the band in front of (or behind) the robot, whatever the
-        camera said (`app.mapping.bumps`). Its cells are not floor from the next frame on
-        and no longer known floor; their colour is unlearned like a standing thing's.
-        Returns how many cells were marked."""
-        cells = bump_cells(
-            self.grid.world_grid, T_world_robot, self.mapping.robot_radius_m, forward=forward
-        )
-        self.bumped.reshape(-1)[cells] = True
-        self.memory.mark_standing(cells)
-        return int(cells.size)
-
-    def _apply_bumps(
-        self, patch: NDArray[np.uint8], index: NDArray[np.int64], T_world_robot: Pose2D
-    ) -> bool:
-        """In place: bumped cells in the patch are not floor (after the blind zone's floor
-        assumption and the confirmed floor); bumped cells under the robot are released
-        (it stands there: whatever held it has moved). Returns whether any are left."""
-        xy = (T_world_robot.x_m, T_world_robot.y_m)
-        under = footprint_mask(self.grid.world_grid, xy, self.mapping.robot_radius_m)
-        self.bumped[under] = False
-        on_map = index >= 0
-        hit = np.zeros(patch.shape, dtype=np.bool_)
-        hit[on_map] = self.bumped.reshape(-1)[index[on_map]]
-        patch[hit] = NOT_FLOOR
-        return bool(self.bumped.any())
 
     def _localize(
         self,
@@ -365,7 +328,6 @@ class GroundMapper:
             memory.restore(snapshot.floor_memory)  # checked before the grid changes
         self.grid.restore(snapshot)
         self.memory = memory
-        self.bumped.fill(False)
         self._views.clear()
         self._confirmed = None
 

@@ -17,7 +17,6 @@ from app.control.mux import CommandMux
 from app.control.steering import SteeringDecision
 from app.devices import Devices
 from app.hardware.serial_link import UnoLink
-from app.mapping.frames import Pose2D
 from app.mapping.ground_map import GroundMapper
 from app.messages import DriveMsg, FloorMsg, FrameMsg, MapMsg, WorldMapMsg
 from app.runtime.pose_error import PoseErrorTracker
@@ -43,9 +42,6 @@ class Shared:
     floor_appearances: tuple[tuple[float, float, float], ...] = ()
     """Floor colours the map has learned (an immutable tuple the mapping stage replaces;
     perception reads it before each frame)."""
-    bumps: list[tuple[Pose2D, bool]] = field(default_factory=list)
-    """Stalls not yet in the map: the pose and whether the robot pushed forwards (the
-    odometry stage appends, the mapping stage takes them)."""
     protective_stop: ProtectiveStop | None = None
     """The stop layer the drive stage applied last (None: none holds the robot)."""
     counters: Counters = field(default_factory=Counters)

@@ -203,7 +203,7 @@ def report(rt: Runtime) -> dict[str, Any]:
         "protective_stops": {
             cause: count
             for cause, count in policy.stops_by_cause.items()
-            if cause in ("link", "camera", "stale", "stall")
+            if cause in ("link", "camera", "stale")
         },
         "last_stop": policy.last_stop.as_dict(now) if policy.last_stop else None,
         "watchdog_stops": counters.watchdog_stops,

@@ -11,7 +11,7 @@ import functools
 import logging
 import math
 import time
-from collections.abc import Callable, Sequence
+from collections.abc import Callable
 from typing import Protocol
 
 import numpy as np
@@ -19,9 +19,7 @@ from numpy.typing import NDArray
 
 from app.channels import SlotReader
 from app.config import PerceptionConfig
-from app.control.stall import StallDetector
 from app.control.steering import Steering
-from app.hardware.protocol import Telemetry
 from app.mapping.frames import FLOOR, GroundGrid, Pose2D
 from app.mapping.frontiers import FrontierGoal, FrontierSearch, path_to_point
 from app.mapping.ground_map import GroundMapper, MapUpdate
@@ -252,15 +250,11 @@ class MappingStage:
         snapshot_due: bool,
         home_xy: tuple[float, float] | None = None,
         home_goal: FrontierGoal | None = None,
-        bumps: Sequence[tuple[Pose2D, bool]] = (),
     ) -> tuple[MapMsg, FrontierSearch | None, WorldMapMsg | None, MapUpdate, FrontierGoal | None]:
-        """In the mapping thread: mark the stalls since the last frame, fuse the frame,
-        maybe search frontiers, cut the window, maybe copy the whole map for readers.
-        With ``home_xy`` (returning home) the goal is the way there: found anew with each
-        search, else ``home_goal`` (the last)."""
+        """In the mapping thread: fuse the frame, maybe search frontiers, cut the window,
+        maybe copy the whole map for readers. With ``home_xy`` (returning home) the goal
+        is the way there: found anew with each search, else ``home_goal`` (the last)."""
         config = self.shared.config
-        for bump_pose, forward in bumps:
-            mapper.mark_bump(bump_pose, forward=forward)
         update = mapper.update(floor.floor_mask, pose, floor.capture_s, floor.image)
         if update.correction is not None:
             # The frame went into the map at the corrected pose; odometry follows in `run`.
@@ -344,7 +338,6 @@ class MappingStage:
                 self._snapshot_due_s = start + WORLD_MAP_PERIOD_S
             exploration = self.exploration
             returning = exploration.phase is Phase.RETURNING and shared.autonomous
-            bumps, shared.bumps = shared.bumps, []
             msg, search, snapshot, update, home_goal = await self.worker.run(
                 self.step,
                 mapper,
@@ -355,7 +348,6 @@ class MappingStage:
                 snapshot_due,
                 exploration.home_xy if returning else None,
                 self.home_goal,
-                bumps,
             )
             if mapper is not shared.mapper:
                 continue  # recalibrated or replaced meanwhile: this map is gone
@@ -463,13 +455,10 @@ class SteeringStage:
 
 
 class OdometryStage:
-    """The Uno's encoder telemetry -> wheel odometry (the pose mapping and steering use),
-    and the wheel-stall check (`app.control.stall`): a robot held by something it did
-    not see gets a protective stop, and the map marks where (`GroundMapper.mark_bump`)."""
+    """The Uno's encoder telemetry -> wheel odometry (the pose mapping and steering use)."""
 
     def __init__(self, shared: Shared) -> None:
         self.shared = shared
-        self.stall = StallDetector(shared.config.drive)
 
     async def run(self) -> None:
         link = self.shared.link
@@ -477,34 +466,9 @@ class OdometryStage:
         async for telemetry in link.telemetry_updates():
             data = telemetry.data
             self.shared.odometry.update(data.encoder_left, data.encoder_right, telemetry.received_s)
-            self._check_stall(telemetry.data, telemetry.received_s)
             if self.shared.pose_error is not None:
                 # Now, while the truth is of the same instant as the encoder counts.
                 self.shared.pose_error.sample(self.shared.odometry.pose, telemetry.received_s)
-
-    def _check_stall(self, data: Telemetry, received_s: float) -> None:
-        shared = self.shared
-        # On the Uno's own clock: the counts and PWM were sampled on it, and the host's
-        # receive times jitter with its load.
-        stall = self.stall.observe(
-            data.uptime_ms / 1000.0,
-            (data.encoder_left, data.encoder_right),
-            (data.pwm_left, data.pwm_right),
-        )
-        problem = None if stall is None else stall.describe()
-        event = shared.policy.observe("stall", problem, received_s)
-        if event is None or stall is None:
-            return
-        pose = shared.odometry.pose
-        shared.bumps.append((pose, stall.forward))
-        if not event.latched:
-            log.warning(
-                "protective stop: %s (ran into something %s the camera missed)",
-                problem,
-                "ahead" if stall.forward else "behind",
-                extra={"event": "stall", "x_m": round(pose.x_m, 3), "y_m": round(pose.y_m, 3)},
-            )
-        shared.on_stop(event)
 
 
 class CoverageStage:

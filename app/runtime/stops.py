@@ -46,15 +46,12 @@ STOP_RULES: dict[str, StopRule] = {
     "link": StopRule(zeroes_motors=True, latches=True, device=True),
     "camera": StopRule(zeroes_motors=True, latches=True, device=True),
     "stale": StopRule(zeroes_motors=True, latches=True, device=False),
-    "stall": StopRule(zeroes_motors=True, latches=True, device=False),
     "clearance": StopRule(zeroes_motors=False, latches=False, device=False),
     "not_floor": StopRule(zeroes_motors=False, latches=False, device=False),
     "calibration": StopRule(zeroes_motors=False, latches=False, device=False),
 }
 """``link``: the Uno is not connected; ``camera``: no recent frame; ``stale``: no recent
-perception or map while exploring; ``stall``: the wheels are held although driven (the
-robot ran into something the camera missed; `app.control.stall`); ``clearance``: too
-little free floor ahead;
+perception or map while exploring; ``clearance``: too little free floor ahead;
 ``not_floor``: the safe zone ahead is not floor; ``calibration``: a calibration failed
 after it had stopped autonomy, which stays off until started (recorded, never held)."""
 

@@ -16,7 +16,6 @@ from app.config import PerceptionConfig
 from app.devices import Devices, open_devices
 from app.hardware.interfaces import CameraFrame, DeviceState, DeviceStatus
 from app.hardware.protocol import MsgType
-from app.mapping.frames import Pose2D
 from app.messages import State
 from app.perception.pipeline import FloorResult, FloorSegmenter
 from app.runtime import (
@@ -523,56 +522,3 @@ async def test_a_task_that_loses_its_cancellation_does_not_hang_shutdown(
     assert elapsed < 1.0 + 3.0 + STRAGGLER_RECANCEL_S + 3.0
     assert service.cancels == 2
     assert "stubborn" in caplog.text and "cancelling again" in caplog.text
-
-
-class FloorBlindSegmenter:
-    """Calls the whole image floor (a floor-coloured wall, as the camera may see it)."""
-
-    def __init__(self, config: PerceptionConfig) -> None:
-        self.inner = FloorSegmenter(config)
-
-    def segment(self, image: np.ndarray) -> FloorResult:
-        result = self.inner.segment(image)
-        return replace(result, floor_mask=np.ones_like(result.floor_mask))
-
-
-async def test_running_into_what_the_camera_missed_is_a_stall_stop_and_a_mark_on_the_map() -> None:
-    """Perception calls the wall ahead floor, so the robot drives into it. The stalled
-    wheels are a protective stop that says so, and the map marks the wall from then on:
-    forward motion is refused by the clearance layer, with nothing new from the camera."""
-    async with running(segmenter_factory=FloorBlindSegmenter) as (rt, _):
-        sim = rt.devices.sim
-        assert sim is not None and sim.uno is not None
-        sim.robot.teleport(Pose2D(4.0, 1.0, 0.0))  # 0.38 m from the dividing wall at x 4.5
-
-        def last_cause() -> str | None:
-            last = rt.status()["last_stop"]
-            return None if last is None else str(last["cause"])
-
-        deadline = time.monotonic() + 8.0
-        while last_cause() != "stall":
-            assert time.monotonic() < deadline, "no stall stop after driving into the wall"
-            rt.teleop("t", 0.25, 0.0)  # the teleop timeout is 0.5 s: keep it fresh
-            await asyncio.sleep(0.1)
-        assert sim.robot.collisions == 1
-        assert rt.policy.stops_by_cause["stall"] == 1
-        assert "wheel stalled" in rt.status()["last_stop"]["reason"]
-
-        # Let go, then ask for forward motion again: the mark refuses it.
-        rt.release_teleop("t")
-        await wait_for(lambda: sim.uno.pwm == (0, 0), 1.0, "the motors to stop")
-
-        def refused_by_clearance() -> bool:
-            stop = rt.shared.protective_stop
-            return stop is not None and stop.cause == "clearance"
-
-        deadline = time.monotonic() + 3.0
-        while not refused_by_clearance():
-            assert time.monotonic() < deadline, "forward motion was not refused after the bump"
-            rt.teleop("t", 0.25, 0.0)
-            await asyncio.sleep(0.05)
-        for _ in range(5):
-            rt.teleop("t", 0.25, 0.0)
-            await asyncio.sleep(0.05)
-            assert sim.uno.pwm == (0, 0)
-        assert sim.robot.collisions == 1
