@@ -94,6 +94,8 @@ class StopTrace:
     def __init__(self, server: LiveServer) -> None:
         self.server = server
         self.marks: dict[str, float] = {}
+        self.telemetry_at: list[float] = []
+        """When each telemetry frame from the Uno arrived (wall clock)."""
         self._module_patch = pytest.MonkeyPatch()
 
     def __enter__(self) -> StopTrace:
@@ -101,6 +103,7 @@ class StopTrace:
         link = runtime.shared.link
         assert link is not None
         estop, stop_motors, drive = runtime.estop, link.stop_motors, link.drive
+        on_telemetry = link._on_telemetry_frame
 
         def traced_estop(source: str = "api") -> None:
             self.marks.setdefault("daemon estop()", time.time())
@@ -124,10 +127,18 @@ class StopTrace:
                 self.marks.setdefault("zero frame on the wire", time.time())
             return encode_frame(frame)
 
+        def traced_on_telemetry(conn: Any, data: Any) -> None:
+            self.telemetry_at.append(time.time())
+            on_telemetry(conn, data)
+
         self._module_patch.setattr("app.hardware.serial_link.encode_frame", traced_encode)
         # Instance attributes shadow the methods until __exit__ removes them again.
         vars(runtime)["estop"] = traced_estop
-        vars(link).update(stop_motors=traced_stop_motors, drive=traced_drive)
+        vars(link).update(
+            stop_motors=traced_stop_motors,
+            drive=traced_drive,
+            _on_telemetry_frame=traced_on_telemetry,
+        )
         return self
 
     def __exit__(self, *exc: object) -> None:
@@ -135,7 +146,7 @@ class StopTrace:
         runtime = self.server.runtime
         vars(runtime).pop("estop", None)
         if runtime.shared.link is not None:
-            for name in ("stop_motors", "drive"):
+            for name in ("stop_motors", "drive", "_on_telemetry_frame"):
                 vars(runtime.shared.link).pop(name, None)
 
 
@@ -186,8 +197,8 @@ class StopTiming:
 def time_to_zero(
     server: LiveServer, act: Callable[[], object], what: str, page: Page | None = None
 ) -> StopTiming:
-    """Milliseconds from the start of ``act`` until the simulated Uno's motors get 0/0;
-    printed with where the time went.
+    """How long from the start of ``act`` until the simulated Uno's motors get 0/0, and
+    how much of it was the daemon's (`StopTiming`); printed with where the time went.
 
     Event-driven, not polled: the simulated Uno's host side hands every PWM change the
     child process reports to its plant (`SimulatedUnoProcess._on_line` -> ``plant.
@@ -208,16 +219,6 @@ def time_to_zero(
             stopped.set()
 
     vars(plant)["apply_pwm"] = traced_apply_pwm
-    link = server.runtime.shared.link
-    assert link is not None
-    on_telemetry = link._on_telemetry_frame
-    telemetry_at: list[float] = []
-
-    def traced_on_telemetry(conn: Any, data: Any) -> None:
-        telemetry_at.append(time.time())
-        on_telemetry(conn, data)
-
-    vars(link)["_on_telemetry_frame"] = traced_on_telemetry
     try:
         with StopTrace(server) as trace:
             start = time.time()
@@ -225,7 +226,6 @@ def time_to_zero(
             stopped.wait(3.0)
     finally:
         vars(plant).pop("apply_pwm", None)
-        vars(link).pop("_on_telemetry_frame", None)
     assert zero_at, f"{what}: the Uno's PWM is still {uno_pwm(server)} 3 s later"
     marks = dict(trace.marks)
     if page is not None:
@@ -244,22 +244,26 @@ def time_to_zero(
     over = " (over the 100 ms target)" if latency_ms > STOP_TARGET_MS else ""
     print(f"\n{what}: PWM 0/0 after {latency_ms:.1f} ms{over} ({steps} ms)")
     wire = marks.get("zero frame on the wire")
-    # Gaps between arrivals, bounded by the action and the stop (the first arrival
-    # after the stop closes the last gap; none at all means silence throughout).
-    edges = [start, *(t for t in telemetry_at if start < t <= zero_at[0]), zero_at[0]]
-    after = [t for t in telemetry_at if t > zero_at[0]]
-    if after:
-        edges[-1] = after[0]
-    before = [t for t in telemetry_at if t <= start]
-    if before:
-        edges[0] = before[-1]
-    gap_ms = max((b - a) * 1000 for a, b in itertools.pairwise(edges))
     return StopTiming(
         what,
         latency_ms,
         None if wire is None else (wire - start) * 1000,
-        gap_ms,
+        longest_gap_ms(trace.telemetry_at, start, zero_at[0]),
     )
+
+
+def longest_gap_ms(arrivals: list[float], start: float, end: float) -> float:
+    """The longest time without an arrival around ``start``..``end``: from the last
+    arrival at or before ``start`` (else ``start``) through those in between to the first
+    after ``end`` (else ``end``)."""
+    before = [t for t in arrivals if t <= start]
+    after = [t for t in arrivals if t > end]
+    edges = [
+        before[-1] if before else start,
+        *(t for t in arrivals if start < t <= end),
+        after[0] if after else end,
+    ]
+    return max((b - a) * 1000 for a, b in itertools.pairwise(edges))
 
 
 class OtherDriver:
