@@ -20,6 +20,7 @@ from __future__ import annotations
 import threading
 from dataclasses import dataclass
 from pathlib import Path
+from typing import Any
 
 import cv2
 import numpy as np
@@ -45,11 +46,22 @@ class FloorNetError(RuntimeError):
     """The floor network's model file is missing or unusable."""
 
 
+_SCALED_FROM_LAB = np.array(
+    [
+        [1.0 / LAB_SCALE[0], 0.0, 0.0, -LAB_CENTER[0] / LAB_SCALE[0]],
+        [0.0, 1.0 / LAB_SCALE[1], 0.0, -LAB_CENTER[1] / LAB_SCALE[1]],
+        [0.0, 0.0, 1.0 / LAB_SCALE[2], -LAB_CENTER[2] / LAB_SCALE[2]],
+    ],
+    dtype=np.float32,
+)
+"""(Lab - LAB_CENTER) / LAB_SCALE as one affine map, so OpenCV applies it in one pass."""
+
+
 def scaled_lab(bgr: NDArray[np.uint8]) -> NDArray[np.float32]:
     """The frame at network input size in the network's scaled CIELAB (H, W, 3)."""
     small = cv2.resize(bgr, (INPUT_WIDTH_PX, INPUT_HEIGHT_PX), interpolation=cv2.INTER_AREA)
     lab = cv2.cvtColor(small.astype(np.float32) * (1.0 / 255.0), cv2.COLOR_BGR2Lab)
-    return np.asarray((lab - LAB_CENTER) / LAB_SCALE, dtype=np.float32)
+    return np.asarray(cv2.transform(lab, _SCALED_FROM_LAB), dtype=np.float32)
 
 
 def blob_for_reference(
@@ -57,10 +69,17 @@ def blob_for_reference(
 ) -> NDArray[np.float32]:
     """The network's input blob with colours taken relative to ``reference`` (scaled
     Lab): the safe zone's colour, or a floor colour learned earlier (the safe zone
-    extended over time and space, `app.mapping.floor_memory`)."""
-    relative = lab_scaled - reference
-    stacked = np.concatenate([lab_scaled, relative], axis=2)
-    return np.ascontiguousarray(stacked.transpose(2, 0, 1)[None], dtype=np.float32)
+    extended over time and space, `app.mapping.floor_memory`).
+
+    Channels 0-2 are ``lab_scaled``, 3-5 are ``lab_scaled - reference``; planes are
+    written one by one (a transposed copy of the stacked image cost 10x more).
+    """
+    height, width, _ = lab_scaled.shape
+    blob = np.empty((1, 6, height, width), dtype=np.float32)
+    for channel, plane in enumerate(cv2.split(lab_scaled)):
+        blob[0, channel] = plane
+        np.subtract(plane, np.float32(reference[channel]), out=blob[0, 3 + channel])
+    return blob
 
 
 def network_input(bgr: NDArray[np.uint8], zone_mask: NDArray[np.bool_]) -> NDArray[np.float32]:
@@ -96,6 +115,15 @@ class FloorNetOutput:
     zone_floor_probability: float
 
 
+def _read_onnx(model_path: Path) -> Any:
+    """OpenCV's classic dnn engine where there is a choice (OpenCV 5): on this network it
+    ran a median 6.7 ms against the new engine's 8.0 ms on one core, same output to 1e-5."""
+    classic = getattr(cv2.dnn, "ENGINE_CLASSIC", None)
+    if classic is None:
+        return cv2.dnn.readNetFromONNX(str(model_path))
+    return cv2.dnn.readNetFromONNX(str(model_path), classic)
+
+
 class FloorNet:
     """Loads the ONNX floor network once and runs it on frames.
 
@@ -107,7 +135,7 @@ class FloorNet:
         if not model_path.is_file():
             raise FloorNetError(f"{model_path}: floor network model file not found")
         try:
-            self._net = cv2.dnn.readNetFromONNX(str(model_path))
+            self._net = _read_onnx(model_path)
         except cv2.error as exc:
             raise FloorNetError(f"{model_path}: not a usable ONNX model ({exc})") from exc
         self._lock = threading.Lock()
