@@ -187,7 +187,7 @@ def _run_daemon_paths(config: FloornavConfig) -> None:
         moved = step >= 1
         if moved and (mapper.parallax is None or mapper.parallax_frames > 0):
             break
-    mapper.frontiers(pose, given_up_xy=[])
+    mapper.frontiers(pose)
     if mapper.parallax is not None:
         _run_parallax_test(mapper, floor_mask, image)
     if mapper.localizer is not None:

@@ -229,24 +229,45 @@ def inflate_obstacles(occupied: NDArray[np.bool_], radius_cells: float) -> NDArr
     return np.asarray(dilated, dtype=bool)
 
 
+def _disk_window(
+    grid: GroundGrid, xy: tuple[float, float], radius_m: float
+) -> tuple[slice, slice, NDArray[np.bool_]] | None:
+    """The rows and columns around ``xy`` that can hold cells whose centre is within
+    ``radius_m`` of it, and which of them do; None when none lies on the grid."""
+    x, y = xy
+    k = math.ceil(radius_m / grid.cell_m) + 1
+    (row, col) = grid.cell_of(np.array([[x, y]]))[0]
+    r0, r1 = max(int(row) - k, 0), min(int(row) + k + 1, grid.rows)
+    c0, c1 = max(int(col) - k, 0), min(int(col) + k + 1, grid.cols)
+    if r0 >= r1 or c0 >= c1:
+        return None
+    xs = grid.x_max_m - (np.arange(r0, r1) + 0.5) * grid.cell_m
+    ys = grid.y_max_m - (np.arange(c0, c1) + 0.5) * grid.cell_m
+    near = (xs[:, None] - x) ** 2 + (ys[None, :] - y) ** 2 <= radius_m**2
+    return slice(r0, r1), slice(c0, c1), near
+
+
+def stamp_disk(
+    mask: NDArray[np.bool_], grid: GroundGrid, xy: tuple[float, float], radius_m: float
+) -> None:
+    """Set, in place, the cells of ``mask`` whose centre is within ``radius_m`` of ``xy``
+    plus the cell containing it (if on the grid); touches only the disk's window."""
+    window = _disk_window(grid, xy, radius_m)
+    if window is not None:
+        rows, cols, near = window
+        mask[rows, cols] |= near
+    (row, col) = grid.cell_of(np.array([xy], dtype=np.float64))[0]
+    if 0 <= row < grid.rows and 0 <= col < grid.cols:
+        mask[row, col] = True
+
+
 def footprint_mask(
     grid: GroundGrid, robot_xy: tuple[float, float], radius_m: float
 ) -> NDArray[np.bool_]:
     """(rows, cols) bool: cells whose centre is within ``radius_m`` of ``robot_xy``, plus
     the cell containing it (if on the grid)."""
-    x, y = robot_xy
     mask = np.zeros(grid.shape, dtype=bool)
-    k = math.ceil(radius_m / grid.cell_m) + 1
-    (row, col) = grid.cell_of(np.array([[x, y]]))[0]
-    r0, r1 = max(int(row) - k, 0), min(int(row) + k + 1, grid.rows)
-    c0, c1 = max(int(col) - k, 0), min(int(col) + k + 1, grid.cols)
-    if r0 < r1 and c0 < c1:
-        xs = grid.x_max_m - (np.arange(r0, r1) + 0.5) * grid.cell_m
-        ys = grid.y_max_m - (np.arange(c0, c1) + 0.5) * grid.cell_m
-        near = (xs[:, None] - x) ** 2 + (ys[None, :] - y) ** 2 <= radius_m**2
-        mask[r0:r1, c0:c1] = near
-    if 0 <= row < grid.rows and 0 <= col < grid.cols:
-        mask[row, col] = True
+    stamp_disk(mask, grid, robot_xy, radius_m)
     return mask
 
 

@@ -210,7 +210,7 @@ def report(rt: Runtime) -> dict[str, Any]:
         "clearance_stops": counters.clearance_stops,
         "premise_stops": counters.premise_stops,
         "steering_decisions": dict(rt.steering_stage.reasons),
-        "goals_given_up": len(rt.mapping.given_up_goals),
+        "goals_given_up": rt.mapping.goals_given_up,
         "commands_sent": counters.commands_sent,
         "send_errors": counters.send_errors,
         "serial": None

@@ -214,7 +214,8 @@ class MappingStage:
         self.shared = shared
         self.worker = StageWorker("mapping")
         self.frontier: FrontierSearch | None = None
-        self.given_up_goals: list[tuple[float, float]] = []
+        self.goals_given_up = 0
+        """Goals given up this run (each map keeps its own, `GroundMapper.given_up`)."""
         self._goal_since: tuple[tuple[float, float], float] | None = None
         self._frontier_due_s = 0.0
         self._snapshot_due_s = 0.0
@@ -260,9 +261,7 @@ class MappingStage:
             # The frame went into the map at the corrected pose; odometry follows in `run`.
             pose = update.correction.compose(pose)
             now_pose = update.correction.compose(now_pose)
-        search = (
-            mapper.frontiers(now_pose, given_up_xy=self.given_up_goals) if frontier_due else None
-        )
+        search = mapper.frontiers(now_pose) if frontier_due else None
         frontier = search if search is not None else self.frontier
         params = mapper.grid.params
         world = mapper.grid.world_grid
@@ -359,7 +358,7 @@ class MappingStage:
                 self.frontier = search
                 self.home_goal = home_goal
                 if shared.autonomous and not shared.mux.estopped:
-                    self._track_goal(search, start)
+                    self._track_goal(mapper, search, start)
                     if exploration is self.exploration:
                         change = exploration.observe(
                             search,
@@ -379,7 +378,12 @@ class MappingStage:
             if snapshot is not None:
                 shared.world_maps.publish(snapshot)
 
-    def _track_goal(self, search: FrontierSearch, now: float) -> None:
+    def _give_up(self, mapper: GroundMapper, xy: tuple[float, float]) -> None:
+        # Between mapping steps (this loop awaits each one), so the worker is not reading.
+        mapper.given_up.add(xy)
+        self.goals_given_up += 1
+
+    def _track_goal(self, mapper: GroundMapper, search: FrontierSearch, now: float) -> None:
         """Give up on a goal that has stayed (within 0.3 m) the goal for
         ``steering.goal_patience_s``: it cannot be seen from where the robot can go."""
         goal = search.goal
@@ -390,7 +394,7 @@ class MappingStage:
         pose = self.shared.odometry.pose
         if goal.probe and math.dist(goal.xy, (pose.x_m, pose.y_m)) < PROBE_ARRIVED_M:
             # An edge probe has had its look on the way there (parallax needs motion).
-            self.given_up_goals.append(goal.xy)
+            self._give_up(mapper, goal.xy)
             log.info(
                 "edge probe at (%.2f, %.2f) done",
                 goal.xy[0],
@@ -403,7 +407,7 @@ class MappingStage:
             self._goal_since = (goal.xy, now)
             return
         if now - self._goal_since[1] > patience_s:
-            self.given_up_goals.append(goal.xy)
+            self._give_up(mapper, goal.xy)
             log.info(
                 "frontier goal (%.2f, %.2f) given up after %.0f s",
                 goal.xy[0],
