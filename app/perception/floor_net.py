@@ -225,22 +225,22 @@ class LearnedFloorPass:
 
 def choose_learned_reference(
     lab_out: NDArray[np.float32],
-    first_floor: NDArray[np.bool_],
+    open_cells: NDArray[np.bool_],
     zone_colour: NDArray[np.float32],
     learned: tuple[tuple[float, float, float], ...],
 ) -> tuple[float, float, float] | None:
     """The learned floor colour that best explains what the first pass left out: the
-    one, unlike the safe zone's, with the largest share (>= `MIN_CANDIDATE_SHARE`) of
-    not-floor cells within `MATCH_DISTANCE` of it; None if none qualifies."""
+    one, unlike the safe zone's, with the largest share (>= `MIN_CANDIDATE_SHARE` of the
+    frame) of ``open_cells`` (cells a second pass could still make floor) within
+    `MATCH_DISTANCE` of it; None if none qualifies."""
     best: tuple[float, float, float] | None = None
     best_share = MIN_CANDIDATE_SHARE
-    not_floor = ~first_floor
     for colour in learned:
         c = np.asarray(colour, dtype=np.float32)
         if float(np.linalg.norm(c - zone_colour)) <= SAME_AS_ZONE:
             continue
         near = np.linalg.norm(lab_out - c, axis=2) <= MATCH_DISTANCE
-        share = float(np.count_nonzero(near & not_floor)) / near.size
+        share = float(np.count_nonzero(near & open_cells)) / near.size
         if share >= best_share:
             best, best_share = colour, share
     return best
@@ -287,7 +287,12 @@ def learned_floor_pass(
         dtype=np.float32,
     )
     first_floor = probability > 0.5
-    reference = choose_learned_reference(lab_out, first_floor, zone_colour, learned)
+    near_field_row = round(LEARNED_FLOOR_MAX_ROW_FRACTION * first_floor.shape[0])
+    # Only cells the pass may change count: a learned colour that matches the near field
+    # (where its floor would be dropped) is no reason to run the network again.
+    open_cells = ~first_floor
+    open_cells[near_field_row:, :] = False
+    reference = choose_learned_reference(lab_out, open_cells, zone_colour, learned)
     if reference is None:
         return LearnedFloorPass(probability, None, 0.0)
     second = net.run(
@@ -297,7 +302,7 @@ def learned_floor_pass(
     # Not in the near field: what the clearance stop reads there must be the per-frame
     # model's call (and the map's geometry-confirmed floor), never a colour learned
     # elsewhere: a floor-coloured box right ahead is the case that hits things.
-    extra[round(LEARNED_FLOOR_MAX_ROW_FRACTION * extra.shape[0]) :, :] = False
+    extra[near_field_row:, :] = False
     combined = np.where(extra, np.maximum(probability, second.probability), probability)
     return LearnedFloorPass(
         combined.astype(np.float32), reference, float(np.count_nonzero(extra)) / extra.size

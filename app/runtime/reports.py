@@ -193,6 +193,10 @@ def report(rt: Runtime) -> dict[str, Any]:
             ),
             "appearances": len(mapper.memory.appearances()),
             "unlearned": mapper.memory.unlearned,
+            "second_passes": counters.learned_floor_passes,
+            "second_pass_share": round(
+                counters.learned_floor_passes / max(counters.frames_perceived, 1), 3
+            ),
         },
         "scan_match": None
         if mapper is None or mapper.localizer is None

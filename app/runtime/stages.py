@@ -186,6 +186,8 @@ class PerceptionStage:
             done = shared.clock()
             shared.stages.add("perception", done - start)
             shared.counters.frames_perceived += 1
+            if result.learned_floor_pass:
+                shared.counters.learned_floor_passes += 1
             shared.floors.publish(
                 FloorMsg(
                     frame.seq,

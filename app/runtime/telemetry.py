@@ -111,6 +111,8 @@ class StageClock:
 class Counters:
     frames_captured: int = 0
     frames_perceived: int = 0
+    learned_floor_passes: int = 0
+    """Frames on which floornet ran its second pass for a learned floor colour."""
     frames_mapped: int = 0
     frames_skipped: int = 0
     bad_frames: int = 0

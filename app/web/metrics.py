@@ -239,6 +239,11 @@ class RuntimeCollector(Collector):
         ):
             frames.add_metric([outcome], value)
         yield frames
+        yield CounterMetricFamily(
+            "floornav_learned_floor_passes",
+            "Frames on which floornet ran a second pass for a floor colour learned earlier",
+            value=counters.learned_floor_passes,
+        )
 
         state = StateSetMetricFamily("floornav_state", "The daemon's state")
         current = service.state

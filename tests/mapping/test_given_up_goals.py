@@ -30,7 +30,7 @@ def test_a_point_off_the_grid_stamps_only_what_its_disk_reaches() -> None:
     stamp_disk(mask, GRID, (3.2, 0.0), 0.4)  # 0.2 m beyond the x = 3 edge
     # Row 0 (centres at x 2.95, 0.25 m away) reaches |y| <= 0.31: six centres at
     # +-0.05, 0.15, 0.25; row 1 (x 2.85, 0.35 m away) reaches |y| <= 0.19: four.
-    rows, cols = np.nonzero(mask)
+    rows = np.nonzero(mask)[0]
     assert np.count_nonzero(rows == 0) == 6 and np.count_nonzero(rows == 1) == 4
     assert mask.sum() == 10
 

@@ -33,10 +33,12 @@ def test_the_reference_is_the_learned_colour_that_explains_the_missed_floor() ->
     first[5:] = True  # the first pass found the lower half (colour 0)
     zone = np.zeros(3, np.float32)
     a, b = (0.5, 0.1, 0.1), (-0.5, 0.0, 0.0)
-    assert choose_learned_reference(lab, first, zone, (b, a)) == a
-    assert choose_learned_reference(lab, first, zone, (b,)) is None
+    assert choose_learned_reference(lab, ~first, zone, (b, a)) == a
+    assert choose_learned_reference(lab, ~first, zone, (b,)) is None
     # A learned colour like the safe zone's adds nothing: not chosen.
-    assert choose_learned_reference(lab, first, zone, ((0.01, 0.0, 0.0),)) is None
+    assert choose_learned_reference(lab, ~first, zone, ((0.01, 0.0, 0.0),)) is None
+    # Nor one that matches only cells the pass may not change (the near field).
+    assert choose_learned_reference(lab, np.zeros_like(first), zone, (b, a)) is None
 
 
 def test_a_learned_tile_colour_makes_the_kitchen_floor_from_the_wood_floor() -> None:
@@ -54,10 +56,12 @@ def test_a_learned_tile_colour_makes_the_kitchen_floor_from_the_wood_floor() -> 
         )
 
     iou_before, _ = scores()
+    assert not segmenter.segment(frame.image).learned_floor_pass
     tiles = bgr_to_scaled_lab(np.array([[0xBA, 0xC8, 0xCF]], np.float32))[0]
     segmenter.learned_floor = (tuple(float(v) for v in tiles),)  # type: ignore[assignment]
     iou_after, precision_after = scores()
     assert iou_after >= iou_before + 0.2, (iou_before, iou_after)
     assert precision_after >= 0.98
+    assert segmenter.segment(frame.image).learned_floor_pass
     segmenter.learned_floor = ()
     assert scores()[0] == iou_before

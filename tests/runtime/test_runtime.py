@@ -155,6 +155,25 @@ class ZoneConfidenceSegmenter:
         return replace(self.inner.segment(image), zone_floor_confidence=self.confidence)
 
 
+class SecondPassSegmenter:
+    """Segments normally and says it ran the learned-floor second pass on every frame."""
+
+    def __init__(self, config: PerceptionConfig) -> None:
+        self.inner = FloorSegmenter(config)
+
+    def segment(self, image: np.ndarray) -> FloorResult:
+        return replace(self.inner.segment(image), learned_floor_pass=True)
+
+
+async def test_learned_floor_second_passes_are_counted_in_the_report() -> None:
+    async with running(segmenter_factory=SecondPassSegmenter) as (rt, _):
+        await wait_for(lambda: rt.counters.frames_perceived >= 5, 5.0, "five frames")
+        report = rt.report()
+        memory = report["floor_memory"]
+        assert memory["second_passes"] == rt.counters.learned_floor_passes >= 5
+        assert memory["second_pass_share"] == pytest.approx(1.0, abs=0.2)
+
+
 async def test_a_safe_zone_that_is_not_floor_stops_forward_motion_until_it_is_again() -> None:
     made: list[ZoneConfidenceSegmenter] = []
 

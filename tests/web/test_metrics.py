@@ -37,6 +37,7 @@ def test_metrics_report_the_service(client: TestClient, service: FakeService) ->
     service.counters.watchdog_stops = 2
     service.counters.premise_stops = 3
     service.counters.frames_perceived = 40
+    service.counters.learned_floor_passes = 7
     service.estop("test")
     assert service.link is not None
     service.link.stats.crc_errors = 3
@@ -64,6 +65,7 @@ def test_metrics_report_the_service(client: TestClient, service: FakeService) ->
     assert metrics["floornav_serial_reconnects_total"][()] == 5
     assert metrics["floornav_watchdog_stops_total"][()] == 2
     assert metrics["floornav_premise_stops_total"][()] == 3
+    assert metrics["floornav_learned_floor_passes_total"][()] == 7
     assert metrics["floornav_zone_floor_confidence"][()] == 0.25
     assert metrics["floornav_estops_total"][()] == 1
     assert 0 <= metrics["floornav_frame_age_seconds"][()] < 5
