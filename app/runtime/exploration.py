@@ -25,6 +25,12 @@ FINISHED_REASONS = frozenset({REASON_NO_FRONTIER, REASON_NO_REACHABLE})
 """Frontier search reasons that mean nothing is left to explore from here."""
 
 
+HOME_STOPPING_MARGIN_M = 0.05
+"""Arrival is judged this far inside ``home_tolerance_m`` (at most half of it): the robot
+is checked twice a second while it drives, and where it comes to rest after the stop
+must still be within the tolerance (a test once saw 0.312 m)."""
+
+
 class Phase(StrEnum):
     EXPLORING = "exploring"
     RETURNING = "returning"  # no reachable frontier left: driving back to the start
@@ -47,7 +53,8 @@ class Exploration:
     ----------
     explored_after_s : no reachable frontier for this long (of search time) ends the
         exploring phase.
-    home_tolerance_m : arriving this close to home finishes.
+    home_tolerance_m : the robot ends this close to home (arrival is judged
+        `HOME_STOPPING_MARGIN_M` inside it, so the stop lands within it).
     return_home : False: finish where the robot stands when nothing is left.
     return_timeout_s : returning this long without arriving finishes where the robot is
         (a path home the map shows but the robot cannot drive).
@@ -68,6 +75,8 @@ class Exploration:
             )
         self.explored_after_s = explored_after_s
         self.home_tolerance_m = home_tolerance_m
+        self.arrival_m = max(home_tolerance_m - HOME_STOPPING_MARGIN_M, home_tolerance_m / 2)
+        """Arriving this close finishes (`HOME_STOPPING_MARGIN_M` inside the tolerance)."""
         self.return_home = return_home
         self.return_timeout_s = return_timeout_s
         self.phase = Phase.EXPLORING
@@ -129,7 +138,7 @@ class Exploration:
             )
         # Returning.
         distance = self.home_distance_m(pose)
-        if distance is not None and distance <= self.home_tolerance_m:
+        if distance is not None and distance <= self.arrival_m:
             return self._change(
                 Phase.EXPLORED, f"explored; back at the start ({distance:.2f} m from it)", now_s
             )

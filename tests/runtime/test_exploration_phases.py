@@ -91,7 +91,12 @@ def test_arriving_home_finishes_and_a_new_frontier_on_the_way_explores_again() -
     assert (
         exploration.observe(nothing_left(), 3.0, Pose2D(1.4, 0.0, 0.0), home_reachable=True) is None
     )
-    change = exploration.observe(nothing_left(), 4.0, Pose2D(1.25, 0.1, 0.0), home_reachable=True)
+    # 0.27 m: within the 0.3 m tolerance but not the 0.05 m stopping margin inside it.
+    assert (
+        exploration.observe(nothing_left(), 3.5, Pose2D(1.25, 0.1, 0.0), home_reachable=True)
+        is None
+    )
+    change = exploration.observe(nothing_left(), 4.0, Pose2D(1.2, 0.1, 0.0), home_reachable=True)
     assert change is not None and change.phase is Phase.EXPLORED
     assert "back at the start" in change.reason and exploration.explored_at_s == 4.0
     # Finished stays finished until a restart.
