@@ -307,3 +307,43 @@ def learned_floor_pass(
     return LearnedFloorPass(
         combined.astype(np.float32), reference, float(np.count_nonzero(extra)) / extra.size
     )
+
+
+class LearnedPassBackoff:
+    """Which learned floor colours may have a second pass on the next frame.
+
+    A second pass costs a whole network run. Where a learned colour matches something
+    that is not floor (a wall near a floor's colour), it would run on most frames and add
+    nothing (68 % of frames in a 120 s run under load). A colour whose pass added less
+    than `MIN_ADDED_SHARE` sits out `FIRST_SKIP_FRAMES` frames, doubling on each
+    fruitless try up to `MAX_SKIP_FRAMES` (about a second at 30 fps); one pass that adds
+    floor clears it. Pure bookkeeping, one instance per perception thread.
+    """
+
+    MIN_ADDED_SHARE = 0.002
+    """About ten of the 5120 output cells."""
+    FIRST_SKIP_FRAMES = 4
+    MAX_SKIP_FRAMES = 32
+
+    def __init__(self) -> None:
+        self._frame = 0
+        self._skips: dict[tuple[float, float, float], tuple[int, int]] = {}
+        """colour -> (first frame it may run again, frames to skip after its next miss)"""
+
+    def eligible(
+        self, learned: tuple[tuple[float, float, float], ...]
+    ) -> tuple[tuple[float, float, float], ...]:
+        """The colours of ``learned`` not sitting out the coming frame."""
+        frame = self._frame
+        return tuple(c for c in learned if self._skips.get(c, (0, 0))[0] <= frame)
+
+    def observe(self, reference: tuple[float, float, float] | None, added_share: float) -> None:
+        """What the frame's second pass did (``reference`` None: none ran)."""
+        self._frame += 1
+        if reference is None:
+            return
+        if added_share >= self.MIN_ADDED_SHARE:
+            self._skips.pop(reference, None)
+            return
+        skip = self._skips.get(reference, (0, self.FIRST_SKIP_FRAMES))[1]
+        self._skips[reference] = (self._frame + skip, min(2 * skip, self.MAX_SKIP_FRAMES))

@@ -85,9 +85,11 @@ class FloorResult:
         How sure the method is that the safe zone is floor (the thesis's premise):
         ``floornet``'s mean floor probability in the zone, else the share of the zone
         the method calls floor. Low means an obstacle stands right ahead.
-    learned_floor_pass : bool
-        ``floornet`` ran its second pass relative to a learned floor colour (twice the
-        network time; the daemon counts how often).
+    learned_floor_reference : (3,) floats or None
+        The learned floor colour ``floornet`` ran its second pass relative to (twice the
+        network time), or None when no second pass ran.
+    learned_floor_added_share : float
+        Share of the network's output cells that second pass made floor.
     """
 
     floor_mask: NDArray[np.bool_]
@@ -97,7 +99,8 @@ class FloorResult:
     method: str
     timings_ms: dict[str, float] = field(default_factory=dict)
     zone_floor_confidence: float = 1.0
-    learned_floor_pass: bool = False
+    learned_floor_reference: tuple[float, float, float] | None = None
+    learned_floor_added_share: float = 0.0
 
 
 def trapezoid_from_config(zone: SafeZoneConfig) -> Trapezoid:
@@ -326,14 +329,13 @@ def _segment_floornet(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorResul
     assert seg._net is not None
     output = seg._net.run(blob, seg._net_zone_out)
     watch.lap("network")
-    second_pass = False
+    learned = None
     if seg.learned_floor:
         learned = learned_floor_pass(
             seg._net, lab, output, zone_colour, seg._net_zone_out, seg.learned_floor
         )
         # The premise stays the first pass's: the safe zone is judged as it is.
         output = replace(output, probability=learned.probability)
-        second_pass = learned.reference is not None
         watch.lap("learned_floor")
     floor = floor_mask(output, zone_mask, min_zone_confidence=seg.config.zone_min_floor_confidence)
     watch.lap("combine")
@@ -345,7 +347,8 @@ def _segment_floornet(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorResul
         "floornet",
         watch.finish(),
         zone_floor_confidence=output.zone_floor_probability,
-        learned_floor_pass=second_pass,
+        learned_floor_reference=learned.reference if learned is not None else None,
+        learned_floor_added_share=learned.added_share if learned is not None else 0.0,
     )
 
 

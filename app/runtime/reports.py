@@ -194,6 +194,7 @@ def report(rt: Runtime) -> dict[str, Any]:
             "appearances": len(mapper.memory.appearances()),
             "unlearned": mapper.memory.unlearned,
             "second_passes": counters.learned_floor_passes,
+            "second_passes_adding_floor": counters.learned_floor_passes_adding,
             "second_pass_share": round(
                 counters.learned_floor_passes / max(counters.frames_perceived, 1), 3
             ),

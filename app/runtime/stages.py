@@ -25,6 +25,7 @@ from app.mapping.frontiers import FrontierGoal, FrontierSearch, path_to_point
 from app.mapping.ground_map import GroundMapper, MapUpdate
 from app.mapping.occupancy import classify_log_odds
 from app.messages import FloorMsg, FrameMsg, MapMsg, WorldMapMsg
+from app.perception.floor_net import LearnedPassBackoff
 from app.perception.image_checks import ImageError
 from app.perception.pipeline import FloorResult
 from app.perception.safe_zone import SafeZoneError
@@ -167,6 +168,7 @@ class PerceptionStage:
     async def run(self) -> None:
         shared = self.shared
         segmenter = self.segmenter_factory(shared.config.perception)
+        backoff = LearnedPassBackoff()
         reader = SlotReader(shared.frames)
         while True:
             frame = await reader.next()
@@ -176,7 +178,7 @@ class PerceptionStage:
             start = shared.clock()
             self.frame_ages.append(start - frame.capture_s)
             if hasattr(segmenter, "learned_floor"):
-                segmenter.learned_floor = shared.floor_appearances
+                segmenter.learned_floor = backoff.eligible(shared.floor_appearances)
             try:
                 result = await self.worker.run(segmenter.segment, frame.image)
             except (ImageError, SafeZoneError) as exc:
@@ -186,8 +188,11 @@ class PerceptionStage:
             done = shared.clock()
             shared.stages.add("perception", done - start)
             shared.counters.frames_perceived += 1
-            if result.learned_floor_pass:
+            backoff.observe(result.learned_floor_reference, result.learned_floor_added_share)
+            if result.learned_floor_reference is not None:
                 shared.counters.learned_floor_passes += 1
+                if result.learned_floor_added_share >= backoff.MIN_ADDED_SHARE:
+                    shared.counters.learned_floor_passes_adding += 1
             shared.floors.publish(
                 FloorMsg(
                     frame.seq,

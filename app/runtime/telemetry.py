@@ -113,6 +113,8 @@ class Counters:
     frames_perceived: int = 0
     learned_floor_passes: int = 0
     """Frames on which floornet ran its second pass for a learned floor colour."""
+    learned_floor_passes_adding: int = 0
+    """Those of them whose second pass added floor."""
     frames_mapped: int = 0
     frames_skipped: int = 0
     bad_frames: int = 0

@@ -7,7 +7,11 @@ import numpy as np
 from app.config import DEFAULT_CONFIG_PATH, load_config
 from app.mapping.floor_memory import bgr_to_scaled_lab
 from app.mapping.frames import Pose2D
-from app.perception.floor_net import choose_learned_reference, connected_to
+from app.perception.floor_net import (
+    LearnedPassBackoff,
+    choose_learned_reference,
+    connected_to,
+)
 from app.perception.pipeline import FloorSegmenter
 from app.sim.setup import renderer_from_config
 
@@ -56,12 +60,49 @@ def test_a_learned_tile_colour_makes_the_kitchen_floor_from_the_wood_floor() -> 
         )
 
     iou_before, _ = scores()
-    assert not segmenter.segment(frame.image).learned_floor_pass
+    assert segmenter.segment(frame.image).learned_floor_reference is None
     tiles = bgr_to_scaled_lab(np.array([[0xBA, 0xC8, 0xCF]], np.float32))[0]
     segmenter.learned_floor = (tuple(float(v) for v in tiles),)  # type: ignore[assignment]
     iou_after, precision_after = scores()
     assert iou_after >= iou_before + 0.2, (iou_before, iou_after)
     assert precision_after >= 0.98
-    assert segmenter.segment(frame.image).learned_floor_pass
+    result = segmenter.segment(frame.image)
+    assert result.learned_floor_reference is not None
+    assert result.learned_floor_added_share >= 0.1
     segmenter.learned_floor = ()
     assert scores()[0] == iou_before
+
+
+def test_a_colour_whose_pass_adds_nothing_sits_out_doubling_spans() -> None:
+    backoff = LearnedPassBackoff()
+    wall, tiles = (0.3, 0.0, 0.0), (0.5, 0.1, 0.1)
+    learned = (wall, tiles)
+    runs = []
+    for frame in range(100):
+        eligible = backoff.eligible(learned)
+        assert tiles in eligible  # the other colour is never held back
+        if wall in eligible:
+            runs.append(frame)
+            backoff.observe(wall, 0.0)  # the pass for the wall colour adds nothing
+        else:
+            backoff.observe(None, 0.0)
+    # It sits out 4, 8, 16, then 32 frames (the cap) each time.
+    assert runs == [0, 5, 14, 31, 64, 97]
+
+
+def test_a_pass_that_adds_floor_clears_its_colour_and_none_ran_changes_nothing() -> None:
+    backoff = LearnedPassBackoff()
+    tiles = (0.5, 0.1, 0.1)
+    backoff.observe(tiles, 0.0)
+    assert backoff.eligible((tiles,)) == ()
+    for _ in range(4):
+        backoff.observe(None, 0.0)
+    assert backoff.eligible((tiles,)) == (tiles,)
+    backoff.observe(tiles, 0.05)  # it added floor this time: no more skipping
+    assert backoff.eligible((tiles,)) == (tiles,)
+    backoff.observe(tiles, 0.0)  # and the next miss starts from the first span again
+    for _ in range(3):
+        assert backoff.eligible((tiles,)) == ()
+        backoff.observe(None, 0.0)
+    backoff.observe(None, 0.0)
+    assert backoff.eligible((tiles,)) == (tiles,)

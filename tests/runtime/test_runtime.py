@@ -156,21 +156,32 @@ class ZoneConfidenceSegmenter:
 
 
 class SecondPassSegmenter:
-    """Segments normally and says it ran the learned-floor second pass on every frame."""
+    """Segments normally and says it ran the learned-floor second pass on every frame,
+    adding floor on every other one."""
 
     def __init__(self, config: PerceptionConfig) -> None:
         self.inner = FloorSegmenter(config)
+        self.frames = 0
 
     def segment(self, image: np.ndarray) -> FloorResult:
-        return replace(self.inner.segment(image), learned_floor_pass=True)
+        self.frames += 1
+        added = 0.01 if self.frames % 2 else 0.0
+        return replace(
+            self.inner.segment(image),
+            learned_floor_reference=(0.1, 0.0, 0.0),
+            learned_floor_added_share=added,
+        )
 
 
 async def test_learned_floor_second_passes_are_counted_in_the_report() -> None:
     async with running(segmenter_factory=SecondPassSegmenter) as (rt, _):
-        await wait_for(lambda: rt.counters.frames_perceived >= 5, 5.0, "five frames")
+        await wait_for(lambda: rt.counters.frames_perceived >= 6, 5.0, "six frames")
         report = rt.report()
         memory = report["floor_memory"]
-        assert memory["second_passes"] == rt.counters.learned_floor_passes >= 5
+        assert memory["second_passes"] == rt.counters.learned_floor_passes >= 6
+        adding = memory["second_passes_adding_floor"]
+        assert adding == rt.counters.learned_floor_passes_adding
+        assert abs(adding - memory["second_passes"] / 2) <= 1
         assert memory["second_pass_share"] == pytest.approx(1.0, abs=0.2)
 
 
