@@ -312,12 +312,12 @@ def learned_floor_pass(
 class LearnedPassBackoff:
     """Which learned floor colours may have a second pass on the next frame.
 
-    A second pass costs a whole network run. Where a learned colour matches something
-    that is not floor (a wall near a floor's colour), it would run on most frames and add
-    nothing (68 % of frames in a 120 s run under load). A colour whose pass added less
-    than `MIN_ADDED_SHARE` sits out `FIRST_SKIP_FRAMES` frames, doubling on each
-    fruitless try up to `MAX_SKIP_FRAMES` (about a second at 30 fps); one pass that adds
-    floor clears it. Pure bookkeeping, one instance per perception thread.
+    A second pass costs a whole network run, and it ran on 68 % of the frames of a 120 s
+    run under load. Where a learned colour matches something that is not floor (a wall
+    near a floor's colour), its passes add nothing. A colour whose pass added less than
+    `MIN_ADDED_SHARE` sits out `FIRST_SKIP_FRAMES` frames, doubling on each fruitless
+    try up to `MAX_SKIP_FRAMES` (about a second at 30 fps); one pass that adds floor
+    clears it. Pure bookkeeping, one instance per perception thread.
     """
 
     MIN_ADDED_SHARE = 0.002
