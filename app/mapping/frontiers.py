@@ -230,15 +230,16 @@ def inflate_obstacles(occupied: NDArray[np.bool_], radius_cells: float) -> NDArr
 
 
 def _disk_window(
-    grid: GroundGrid, xy: tuple[float, float], radius_m: float
+    grid: GroundGrid, xy: tuple[float, float], cell: tuple[int, int], radius_m: float
 ) -> tuple[slice, slice, NDArray[np.bool_]] | None:
-    """The rows and columns around ``xy`` that can hold cells whose centre is within
-    ``radius_m`` of it, and which of them do; None when none lies on the grid."""
+    """The rows and columns around ``xy`` (in grid ``cell``) that can hold cells whose
+    centre is within ``radius_m`` of it, and which of them do; None when none lies on
+    the grid."""
     x, y = xy
+    row, col = cell
     k = math.ceil(radius_m / grid.cell_m) + 1
-    (row, col) = grid.cell_of(np.array([[x, y]]))[0]
-    r0, r1 = max(int(row) - k, 0), min(int(row) + k + 1, grid.rows)
-    c0, c1 = max(int(col) - k, 0), min(int(col) + k + 1, grid.cols)
+    r0, r1 = max(row - k, 0), min(row + k + 1, grid.rows)
+    c0, c1 = max(col - k, 0), min(col + k + 1, grid.cols)
     if r0 >= r1 or c0 >= c1:
         return None
     xs = grid.x_max_m - (np.arange(r0, r1) + 0.5) * grid.cell_m
@@ -252,11 +253,12 @@ def stamp_disk(
 ) -> None:
     """Set, in place, the cells of ``mask`` whose centre is within ``radius_m`` of ``xy``
     plus the cell containing it (if on the grid); touches only the disk's window."""
-    window = _disk_window(grid, xy, radius_m)
+    (row, col) = grid.cell_of(np.array([xy], dtype=np.float64))[0]
+    row, col = int(row), int(col)
+    window = _disk_window(grid, xy, (row, col), radius_m)
     if window is not None:
         rows, cols, near = window
         mask[rows, cols] |= near
-    (row, col) = grid.cell_of(np.array([xy], dtype=np.float64))[0]
     if 0 <= row < grid.rows and 0 <= col < grid.cols:
         mask[row, col] = True
 

@@ -333,8 +333,11 @@ class LearnedPassBackoff:
     def eligible(
         self, learned: tuple[tuple[float, float, float], ...]
     ) -> tuple[tuple[float, float, float], ...]:
-        """The colours of ``learned`` not sitting out the coming frame."""
+        """The colours of ``learned`` not sitting out the coming frame (colours no
+        longer learned are forgotten, so the table stays as small as the list)."""
         frame = self._frame
+        for colour in self._skips.keys() - set(learned):
+            del self._skips[colour]
         return tuple(c for c in learned if self._skips.get(c, (0, 0))[0] <= frame)
 
     def observe(self, reference: tuple[float, float, float] | None, added_share: float) -> None:
