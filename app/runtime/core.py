@@ -53,6 +53,7 @@ from app.runtime.exploration import Phase, PhaseChange
 from app.runtime.health import HealthStage
 from app.runtime.stages import (
     CaptureStage,
+    CollisionStage,
     CoverageStage,
     MappingStage,
     OdometryStage,
@@ -130,6 +131,7 @@ class Runtime:
         self.mapping = MappingStage(self.shared)
         self.mapping.on_phase = self._on_phase
         self.coverage = CoverageStage(self.shared)
+        self.collisions = CollisionStage(self.shared)
         self.on_explored: Callable[[], Awaitable[object]] | None = None
         """Awaited when exploration finishes (the daemon saves the map)."""
         self._explored_task: asyncio.Task[None] | None = None
@@ -591,6 +593,7 @@ class Runtime:
                         "drive": self.drive.run(),
                         "odometry": OdometryStage(shared).run(),
                         "coverage": self.coverage.run(),
+                        "collisions": self.collisions.run(),
                         "health": self.health.run(),
                         "loop_lag": self.loop_lag.run(),
                     }

@@ -174,6 +174,7 @@ def report(rt: Runtime) -> dict[str, Any]:
         "stage_ms": shared.stages.summary_ms(),
         "loop_lag_ms": rt.loop_lag.summary_ms(),
         "collisions": sim.robot.collisions if sim is not None else None,
+        "collision_events": rt.collisions.events if sim is not None else None,
         "coverage_ratio": truth["coverage_ratio"] if truth else None,
         "coverage_reachable": reachable,
         "map_iou": truth["map_iou"] if truth else None,

@@ -519,3 +519,72 @@ class CoverageStage:
                 coverage_of_mask, snapshot.cells, snapshot.grid, sim.T_plan_odom, *truth
             )
             self.clock.sample(coverage, elapsed_s)
+
+
+COLLISION_EVENTS_KEPT = 50
+"""The report keeps the first this many collisions with what the host was doing."""
+
+
+class CollisionStage:
+    """On the simulator: tells about every collision the simulated robot has, with what
+    the host was doing when it happened (the command it sent and why, the clearance it
+    believed in, how old its map was), so a collision in a long run can be explained.
+
+    Polls the robot every ``period_s``; the context is the host's newest at that moment,
+    at most ``period_s`` after the contact (the robot stops at contact, so it changes
+    little)."""
+
+    def __init__(self, shared: Shared, period_s: float = 0.1) -> None:
+        self.shared = shared
+        self.period_s = period_s
+        self.events: list[dict[str, object]] = []
+
+    async def run(self) -> None:
+        shared = self.shared
+        sim = shared.devices.sim
+        if sim is None:
+            return
+        seen = sim.robot.collisions
+        while True:
+            await asyncio.sleep(self.period_s)
+            if sim.robot.collisions == seen:
+                continue
+            seen = sim.robot.collisions
+            for contact in sim.robot.contacts:
+                if contact.number > len(self.events) and len(self.events) < COLLISION_EVENTS_KEPT:
+                    self.events.append(self._describe(contact.as_dict()))
+            log.warning(
+                "collision %d in the simulator: %s",
+                seen,
+                self.events[-1] if self.events else "",
+                extra={"event": "sim_collision"},
+            )
+
+    def _describe(self, contact: dict[str, float | int | None]) -> dict[str, object]:
+        shared = self.shared
+        now = shared.clock()
+        drive = shared.drives.peek()
+        decision = shared.decisions.peek()
+        map_msg = shared.maps.peek()
+        stop = shared.protective_stop
+        return {
+            **contact,
+            "run_time_s": round(now - shared.started_s, 2) if shared.started_s else None,
+            "command": None
+            if drive is None
+            else {
+                "source": drive.source,
+                "v_m_s": round(drive.twist.v_m_s, 3),
+                "omega_rad_s": round(drive.twist.omega_rad_s, 3),
+                "age_ms": round((now - drive.sent_s) * 1000, 1),
+            },
+            "steering_reason": decision.reason if decision is not None else None,
+            "steering_range_ahead_m": None
+            if decision is None
+            else round(decision.range_ahead_m, 3),
+            "map_clearance_ahead_m": None
+            if map_msg is None
+            else round(map_msg.clearance_ahead_m, 3),
+            "map_age_ms": None if map_msg is None else round((now - map_msg.capture_s) * 1000, 1),
+            "protective_stop": stop.cause if stop is not None else None,
+        }

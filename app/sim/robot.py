@@ -28,7 +28,8 @@ ideal one above.
 The robot is a circle of ``radius_m`` in the world's plan frame. When a step would make
 it touch a wall or a box, it stops at the contact (found by bisection along the arc),
 both wheels stop (stalled: encoders count only the travel before contact) and
-`SimRobot.collisions` counts the new contact. It can always turn in place or back away.
+`SimRobot.collisions` counts the new contact and `SimRobot.contacts` keeps what it was
+doing (`Contact`). It can always turn in place or back away.
 A contact ends once the robot is `CONTACT_RELEASE_M` clear of everything: a robot that
 scrubs along a box while turning on the spot (slip moves its centre by fractions of a
 millimetre) is in one collision, not in one per step.
@@ -43,6 +44,7 @@ import math
 import random
 import threading
 import time
+from collections import deque
 from dataclasses import dataclass
 
 from app.mapping.frames import Pose2D
@@ -53,6 +55,43 @@ PWM_MAX = 255
 
 CONTACT_RELEASE_M = 0.01
 """How far from everything a robot in contact must get before a new contact counts."""
+
+
+CONTACTS_KEPT = 64
+"""`SimRobot.contacts` keeps the newest this many."""
+
+
+@dataclass(frozen=True)
+class Contact:
+    """One collision: where the robot was, what it hit and how it was moving."""
+
+    number: int
+    """1 for the run's first collision."""
+    sim_time_s: float
+    """Simulated time since the robot was made."""
+    pose: Pose2D
+    """T_plan_robot at the contact."""
+    bearing_rad: float | None
+    """Direction of the touched point in the robot frame (0 ahead, +pi/2 left; None
+    without a world)."""
+    forward_m_s: float
+    """Forward speed just before the contact (negative: reversing)."""
+    yaw_rate_rad_s: float
+    """Turn rate just before the contact (positive: counter-clockwise)."""
+
+    def as_dict(self) -> dict[str, float | int | None]:
+        return {
+            "number": self.number,
+            "sim_time_s": round(self.sim_time_s, 3),
+            "x_m": round(self.pose.x_m, 3),
+            "y_m": round(self.pose.y_m, 3),
+            "theta_rad": round(self.pose.theta_rad, 3),
+            "bearing_deg": None
+            if self.bearing_rad is None
+            else round(math.degrees(self.bearing_rad), 1),
+            "forward_m_s": round(self.forward_m_s, 3),
+            "yaw_rate_rad_s": round(self.yaw_rate_rad_s, 3),
+        }
 
 
 @dataclass(frozen=True)
@@ -198,6 +237,8 @@ class SimRobot:
         self._slip_state = [0.0, 0.0]
         self._count_error = [0.0, 0.0]
         self._collisions = 0
+        self._contacts: deque[Contact] = deque(maxlen=CONTACTS_KEPT)
+        self._sim_time_s = 0.0
         self._in_contact = False
         self._thread: threading.Thread | None = None
         self._stop = threading.Event()
@@ -233,6 +274,12 @@ class SimRobot:
             return self._collisions
 
     @property
+    def contacts(self) -> tuple[Contact, ...]:
+        """The newest `CONTACTS_KEPT` collisions, oldest first."""
+        with self._lock:
+            return tuple(self._contacts)
+
+    @property
     def wheel_speeds_m_s(self) -> tuple[float, float]:
         with self._lock:
             return self._speed[0], self._speed[1]
@@ -265,10 +312,12 @@ class SimRobot:
             travels = self._ground_travels(rotations, accel, dt_s) if p.slips else rotations
             start = self._pose
             fraction = self._free_fraction(start, travels[0], travels[1])
+            self._sim_time_s += dt_s
             if fraction < 1.0:
-                self._speed = [0.0, 0.0]
                 if not self._in_contact:
                     self._collisions += 1
+                    self._contacts.append(self._contact(start, travels, fraction))
+                self._speed = [0.0, 0.0]
                 self._in_contact = True
             self._pose = arc_pose(
                 start, travels[0] * fraction, travels[1] * fraction, p.wheel_base_m
@@ -284,6 +333,26 @@ class SimRobot:
                     self._count_error[i] += self._rng.gauss(
                         0.0, p.encoder_tick_noise * math.sqrt(ticks)
                     )
+
+    def _contact(self, start: Pose2D, travels: list[float], fraction: float) -> Contact:
+        p = self.params
+        pose = arc_pose(start, travels[0] * fraction, travels[1] * fraction, p.wheel_base_m)
+        bearing = None
+        touched = self.world.nearest_obstacle_xy(pose.x_m, pose.y_m) if self.world else None
+        if touched is not None:
+            world_angle = math.atan2(touched[1] - pose.y_m, touched[0] - pose.x_m)
+            bearing = math.atan2(
+                math.sin(world_angle - pose.theta_rad), math.cos(world_angle - pose.theta_rad)
+            )
+        left, right = self._speed
+        return Contact(
+            number=self._collisions,
+            sim_time_s=self._sim_time_s,
+            pose=pose,
+            bearing_rad=bearing,
+            forward_m_s=(left + right) / 2,
+            yaw_rate_rad_s=(right - left) / p.wheel_base_m,
+        )
 
     def _ground_travels(
         self, rotations: list[float], accel_m_s2: float, dt_s: float

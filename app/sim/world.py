@@ -812,6 +812,19 @@ class World:
                 return 0.0
         return best
 
+    def nearest_obstacle_xy(self, x_m: float, y_m: float) -> tuple[float, float] | None:
+        """The nearest point of any wall or box edge to a point (None: nothing to hit)."""
+        segments = self.obstacle_segments
+        if not len(segments):
+            return None
+        point = np.array([x_m, y_m])
+        p0, p1 = segments[:, :2], segments[:, 2:]
+        e = p1 - p0
+        t = np.clip(((point - p0) * e).sum(axis=1) / np.maximum((e * e).sum(axis=1), 1e-18), 0, 1)
+        nearest = p0 + t[:, None] * e
+        best = int(np.argmin(np.hypot(*(point - nearest).T)))
+        return float(nearest[best, 0]), float(nearest[best, 1])
+
     def floor_raster(self, texel_m: float = 0.01, *, margin_m: float = 1.0) -> FloorTexture:
         """The floor's colour raster at ``texel_m`` (cached), covering the bounds plus
         ``margin_m``, with ``cv2.pyrDown`` mip levels down to about 8 texels."""

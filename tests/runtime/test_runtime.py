@@ -552,3 +552,36 @@ async def test_a_task_that_loses_its_cancellation_does_not_hang_shutdown(
     assert elapsed < 1.0 + 3.0 + STRAGGLER_RECANCEL_S + 3.0
     assert service.cancels == 2
     assert "stubborn" in caplog.text and "cancelling again" in caplog.text
+
+
+async def test_a_collision_in_the_simulator_is_logged_and_reported_with_its_context(
+    caplog: pytest.LogCaptureFixture,
+) -> None:
+    from app.mapping.frames import Pose2D
+
+    async with running() as (rt, _):
+        sim = rt.devices.sim
+        assert sim is not None
+        await wait_for(lambda: rt.counters.frames_perceived >= 3, 5.0, "three frames")
+        start = sim.robot.pose
+        wall = sim.world.nearest_obstacle_xy(start.x_m, start.y_m)
+        assert wall is not None
+        # Face the nearest wall from 2 mm short of touching it, and push the motors.
+        heading = np.arctan2(wall[1] - start.y_m, wall[0] - start.x_m)
+        back = sim.robot.params.radius_m + 0.002
+        sim.robot.teleport(
+            Pose2D(wall[0] - back * np.cos(heading), wall[1] - back * np.sin(heading), heading)
+        )
+        caplog.set_level(logging.WARNING, logger="floornav.runtime")
+
+        def push() -> bool:
+            sim.robot.apply_pwm(200, 200)
+            return bool(rt.collisions.events)
+
+        await wait_for(push, 3.0, "the collision to be reported")
+        (event,) = rt.collisions.events
+        assert event["number"] == 1
+        assert abs(event["bearing_deg"]) < 5.0
+        assert {"command", "steering_reason", "map_clearance_ahead_m", "map_age_ms"} <= set(event)
+        assert rt.report()["collision_events"] == [event]
+        assert any("collision 1 in the simulator" in r.getMessage() for r in caplog.records)

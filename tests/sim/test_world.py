@@ -140,6 +140,28 @@ def test_collision_stops_at_contact_and_counts() -> None:
     assert robot.collisions == 2
 
 
+def test_each_collision_is_recorded_with_what_was_hit_and_how() -> None:
+    world = parse_world(MINIMAL)
+    robot = SimRobot(world, PARAMS)  # wall at x = 4, straight ahead
+    _drive(robot, 255, 255, 10.0, dt=0.05)
+    (first,) = robot.contacts
+    assert first.number == 1
+    assert first.bearing_rad == pytest.approx(0.0, abs=1e-6)
+    assert first.forward_m_s == pytest.approx(0.5, abs=1e-3)
+    assert first.yaw_rate_rad_s == pytest.approx(0.0, abs=1e-9)
+    assert first.pose.x_m == pytest.approx(4.0 - PARAMS.radius_m, abs=1e-4)
+    # Back off, turn to face away, and reverse into the wall: behind the robot.
+    _drive(robot, -255, -255, 0.5)
+    _drive(robot, -255, 255, math.pi / 5, dt=math.pi / 1000)
+    _drive(robot, -255, -255, 2.0)
+    second = robot.contacts[-1]
+    assert (second.number, robot.collisions) == (2, 2)
+    assert abs(second.bearing_rad) == pytest.approx(math.pi, abs=1e-3)
+    assert second.forward_m_s < 0
+    assert second.as_dict()["bearing_deg"] in (180.0, -180.0)
+    assert first.sim_time_s < second.sim_time_s
+
+
 def test_scrubbing_along_a_wall_is_one_collision() -> None:
     """Slip while turning on the spot against a wall moves the centre off and onto the
     wall by fractions of a millimetre (seen in an hour-long run: 26 "collisions" at one
