@@ -185,6 +185,12 @@ class MappingConfig(StrictModel):
     parallax_baseline_m: Annotated[float, Field(ge=0.03, le=0.5)] = 0.12
     """Camera travel between the two frames compared (nearest stored view is used)."""
     parallax_max_turn_rad: Annotated[float, Field(ge=0.0, le=1.0)] = 0.2
+    standing_by_horizon: bool = True
+    """Floor never appears above the camera's horizon: where the floor mask runs up a
+    column past it, the upper part of that run, down to where its colour changes, is a
+    surface standing up (a floor-coloured box or cupboard taller than the camera) and an
+    obstacle (`app.perception.standing`; ~4 ms on the frames it fires on, nothing on the
+    others). Needs no motion, unlike the parallax test."""
     scan_matching: bool = False
     """Localize against the map (`app.mapping.scan_match`): wheel odometry drifts (slip,
     tyre scale), and a map fused at drifting poses smears. Off by default: on the same

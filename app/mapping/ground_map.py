@@ -35,6 +35,7 @@ from app.mapping.occupancy import (
 )
 from app.mapping.scan_match import LocalizerParams, MatchParams, ScanLocalizer, view_bearings
 from app.perception.planar import ParallaxResult, PlanarParams, confirm_floor, view_homography
+from app.perception.standing import horizon_rows, standing_across_horizon
 
 _NO_SECOND_MAP = np.empty((0, 0), dtype=np.uint16)
 """cv2.remap's second map, unused with the fixed-point `BirdseyeMap.nearest_map`."""
@@ -105,6 +106,14 @@ def frontier_params(mapping: MappingConfig) -> FrontierParams:
         size_penalty_m=mapping.frontier_size_penalty_m,
         turn_penalty_m_per_rad=mapping.frontier_turn_penalty_m_per_rad,
     )
+
+
+def image_horizon_rows(calibration: FloorCalibration) -> NDArray[np.int64]:
+    """Per column of the calibrated image, the first row whose ray meets the floor."""
+    width, height = calibration.image_size
+    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
+    ground = calibration.image_to_ground(np.column_stack((u.ravel(), v.ravel())))
+    return horizon_rows(np.isfinite(ground).all(axis=1).reshape(height, width))
 
 
 @dataclass(frozen=True)
@@ -203,6 +212,10 @@ class GroundMapper:
         self._near_cells = np.asarray(
             (x <= self.memory.params.near_m) & self.birdseye.visible, dtype=np.bool_
         )
+        self.horizon_row = image_horizon_rows(calibration) if mapping.standing_by_horizon else None
+        """Per image column, the first row below the horizon (None: the test is off)."""
+        self.standing_frames = 0
+        """Frames in which the horizon test found a standing surface (for the report)."""
         # Parallax needs the floor homography to hold on the frames themselves.
         self.parallax = (
             PlanarParams() if mapping.parallax_floor and calibration.intrinsics is None else None
@@ -243,6 +256,14 @@ class GroundMapper:
         tested: ParallaxResult | None = None
         if image is not None and self.parallax is not None:
             floor_mask, tested = self._confirm_by_parallax(floor_mask, image, T_world_robot, now_s)
+        standing_px: NDArray[np.bool_] | None = None
+        if image is not None and image.ndim == 3 and self.horizon_row is not None:
+            standing_px = standing_across_horizon(floor_mask, image, self.horizon_row)
+            if standing_px.any():
+                self.standing_frames += 1
+                floor_mask = floor_mask & ~standing_px
+            else:
+                standing_px = None
         patch = birdseye_floor_patch(floor_mask, self.birdseye)
         # The thesis's safe-zone assumption: the strip just ahead of the robot, below the
         # camera's view, is free floor.
@@ -283,6 +304,13 @@ class GroundMapper:
             )
             memory.mark_standing(index[standing], standing_bgr)
             patch[standing] = NOT_FLOOR
+        if standing_px is not None and image is not None:
+            # As parallax's standing: no longer known floor (a textureless face can
+            # pass the parallax test as flat), its colour unlearned.
+            standing_cells = birdseye_floor_patch(standing_px, self.birdseye) == FLOOR
+            memory.mark_standing(
+                index[standing_cells], image[standing_px][::STANDING_COLOUR_STRIDE]
+            )  # the patch has them as not floor already: the mask lost them above
         memory.drive_over(T_world_robot, self.mapping.robot_radius_m)
         corrected = memory.correct_patch(patch, index)
         summary = self.grid.update(patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot)

@@ -8,6 +8,7 @@ from dataclasses import replace
 from pathlib import Path
 
 import numpy as np
+import pytest
 
 from app.config import CameraConfig, MappingConfig
 from app.mapping.calibration import apply_homography, homography_from_point_pairs
@@ -160,3 +161,30 @@ def test_restore_puts_a_snapshot_into_a_fresh_mapper() -> None:
     restored_goal, goal = fresh.frontiers(pose).goal, mapper.frontiers(pose).goal
     assert restored_goal is not None and goal is not None
     assert restored_goal.xy == goal.xy
+
+
+def test_a_floor_coloured_box_the_mask_calls_floor_is_an_obstacle_by_the_horizon() -> None:
+    """The shipped world's cardboard box (0.35 m, taller than the camera) 0.7 m ahead,
+    under a mask that calls all of it floor: the horizon test stops the floor at its
+    base, so the clearance ahead is the box's, not the camera's range."""
+    from app.runtime.stages import clearance_ahead_m
+
+    mapper, renderer, _ = sim_mapper(standing_by_horizon=True, parallax_floor=False)
+    plain, _, _ = sim_mapper(standing_by_horizon=False, parallax_floor=False)
+    box_xy, heading, distance = (2.4, 3.7), 2.982, 0.7
+    pose = Pose2D(
+        box_xy[0] - distance * math.cos(heading), box_xy[1] - distance * math.sin(heading), heading
+    )
+    frame = renderer.render(pose)  # type: ignore[attr-defined]
+    red, blue = frame.image[..., 2].astype(int), frame.image[..., 0].astype(int)
+    mask = frame.floor_mask | (red - blue > 30)  # the brown box called floor; walls grey
+    radius, reach = mapper.mapping.robot_radius_m, mapper.mapping.max_range_m
+    found = mapper.update(mask, pose, 0.0, frame.image)
+    missed = plain.update(mask, pose, 0.0, frame.image)
+    clear_found = clearance_ahead_m(found.patch, mapper.birdseye.grid, radius, reach)
+    clear_missed = clearance_ahead_m(missed.patch, plain.birdseye.grid, radius, reach)
+    # The box's near face is 0.7 - 0.175 m from the robot's centre (its half depth).
+    expected = distance - 0.175 - radius
+    assert clear_found == pytest.approx(expected, abs=0.06)
+    assert clear_missed > expected + 1.0
+    assert mapper.standing_frames == 1 and plain.standing_frames == 0

@@ -1,0 +1,269 @@
+"""Standing surfaces found by the horizon: floor never appears above it.
+
+A calibrated floor camera sees the floor plane only below its horizon (the image of the
+plane's line at infinity). Where a floor mask runs up a column past the horizon, the
+segmenter has taken a surface that stands up (a floor-coloured box, cupboard or wall
+panel taller than the camera) for floor. Colour cannot tell such a surface from the
+floor; geometry can, and here it needs no motion (the parallax test, `planar`, does).
+
+In each such column the standing surface is the upper part of the mask's run, and its
+base, where it meets the floor, is where the run's colour changes: the best two-segment
+split of the column's colour profile (least squares, as a change-point). The split is
+searched only below the horizon (the part above is standing whatever its colour). If the
+two parts differ by less than ``min_step`` in colour, nothing in the run looks like
+floor below a standing surface: the whole run is standing (a box filling the view).
+
+Pure numpy on arrays; `standing_across_horizon` is the entry point.
+"""
+
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+NEIGHBOUR_COLUMNS = 8
+"""A column without a clear base of its own borrows the median base of the columns
+this near (at the search's resolution) that have one."""
+
+
+MAX_SPLITS = 3
+"""Splits per column at most (floor, rug, threshold under one surface)."""
+BASE_MEDIAN_HALF = 2
+"""Base rows are smoothed over this many columns either side."""
+
+
+@dataclass(frozen=True)
+class HorizonParams:
+    """Constants of the test, fixed from geometry before looking at any result."""
+
+    min_above_frac: float = 0.02
+    """A run must reach this far above the horizon (a share of the image height, about
+    a degree for a webcam): a camera pitched by a rocking start, or a calibration off by
+    a little, must not turn far floor into a standing surface."""
+    min_step: float = 4.0
+    """Smallest colour difference (CIELAB units, mean of each part) between the floor
+    below a standing surface and the surface itself; less: the whole run is standing."""
+    min_floor_frac: float = 0.01
+    """The floor part below a split holds at least this share of the image height."""
+    grow_tolerance: float = 6.0
+    """Beside the columns that cross the horizon, a mask pixel joins a standing surface
+    within this colour distance (CIELAB, plus twice the surface's own spread) of it..."""
+    grow_reach_frac: float = 0.15
+    """...and only this far (a share of the image width) beside them."""
+    search_rows: int = 120
+    """The colour profiles are searched at about this many rows (the frame shrunk by a
+    whole factor; base lines are found to within that factor's pixels)."""
+
+
+def horizon_rows(
+    image_to_ground_valid: NDArray[np.bool_],
+) -> NDArray[np.int64]:
+    """Per column, the first row below the horizon.
+
+    ``image_to_ground_valid`` : (H, W) bool, True where a pixel's ray meets the floor in
+    front of the camera (finite ground coordinates). Columns without any such pixel get
+    H (all of the column is above the horizon)."""
+    valid = np.asarray(image_to_ground_valid, dtype=bool)
+    height = valid.shape[0]
+    # The horizon is a line: below it every pixel is valid, so the first valid row is it.
+    first = valid.argmax(axis=0)
+    rows: NDArray[np.int64] = np.where(valid.any(axis=0), first, height).astype(np.int64)
+    return rows
+
+
+def standing_across_horizon(
+    floor_mask: NDArray[np.bool_],
+    image_bgr: NDArray[np.uint8],
+    horizon_row: NDArray[np.int64],
+    params: HorizonParams | None = None,
+) -> NDArray[np.bool_]:
+    """The pixels of ``floor_mask`` that belong to surfaces standing up (see the module).
+
+    Parameters
+    ----------
+    floor_mask : (H, W) bool, True = floor (the segmenter's mask)
+    image_bgr : (H, W, 3) uint8 BGR, the frame the mask came from
+    horizon_row : (W,) first row below the horizon per column (`horizon_rows`)
+
+    Returns
+    -------
+    (H, W) bool: True where the mask says floor but the pixel is a standing surface.
+    """
+    p = params if params is not None else HorizonParams()
+    mask = np.asarray(floor_mask, dtype=bool)
+    height, width = mask.shape
+    if image_bgr.shape[:2] != mask.shape or horizon_row.shape != (width,):
+        raise ValueError(
+            f"image {image_bgr.shape[:2]}, mask {mask.shape} and horizon {horizon_row.shape} "
+            "must agree"
+        )
+    standing = np.zeros_like(mask)
+    leak_row = horizon_row - max(1, round(p.min_above_frac * height))
+    # The cheap check first: most frames have no floor above the horizon at all.
+    highest = np.where(mask.any(axis=0), mask.argmax(axis=0), height)
+    if not (highest < leak_row).any():
+        return standing
+    s = max(1, round(height / p.search_rows))
+    small_mask = mask[::s, ::s]
+    small_h, small_w = small_mask.shape
+    lab = cv2.cvtColor(
+        cv2.resize(image_bgr, (small_w, small_h), interpolation=cv2.INTER_AREA), cv2.COLOR_BGR2LAB
+    ).astype(np.float32)
+    # OpenCV's 8-bit Lab: L scaled by 255/100, a and b offset by 128. Back to CIELAB.
+    lab[..., 0] *= 100.0 / 255.0
+    small_horizon = np.ceil(horizon_row[::s] / s).astype(np.int64)
+    small_leak = np.floor(leak_row[::s] / s).astype(np.int64)
+    small_rows = np.arange(small_h)[:, None]
+    leaking = (small_mask & (small_rows < small_leak[None, :])).any(axis=0)
+    cols = np.flatnonzero(leaking)
+    if cols.size == 0:
+        return standing
+    # Each leaking column's run: from its highest floor row above the horizon down to
+    # the first non-floor row below it (the run the segmenter grew up the surface).
+    sub = small_mask[:, cols]
+    top = sub.argmax(axis=0)
+    below_top = small_rows >= top[None, :]
+    gap = below_top & ~sub
+    bottom = np.where(gap.any(axis=0), gap.argmax(axis=0), small_h)
+    in_run = below_top & (small_rows < bottom[None, :])
+    # Rows below every run's bottom take no part.
+    last = int(bottom.max())
+    in_run = in_run[:last]
+    profile = lab[:last, cols, :] * in_run[..., None]
+    csum = np.cumsum(profile, axis=0)
+    csq = np.cumsum((profile**2).sum(axis=2), axis=0)
+    count = np.cumsum(in_run, axis=0).astype(np.float32)
+    # Sums over the run's rows < k, for every row k (k = 0: nothing).
+    upper_sum = np.concatenate([np.zeros((1, len(cols), 3), np.float32), csum[:-1]], axis=0)
+    upper_sq = np.concatenate([np.zeros((1, len(cols)), np.float32), csq[:-1]], axis=0)
+    upper_n = np.concatenate([np.zeros((1, len(cols))), count[:-1]], axis=0)
+    index = np.arange(len(cols))
+    run_rows = small_rows[:last]
+    min_floor_rows = max(1, round(p.min_floor_frac * height / s))
+    searchable = (run_rows >= small_horizon[cols][None, :]) & (run_rows > top[None, :])
+    # Binary segmentation from the bottom up: split the run [top, end) in two where the
+    # colour changes most, and while the upper part still holds a real change below the
+    # horizon, split it again. The surface is the topmost part; the first split alone
+    # could fall between two floors (a rug on wood) under the surface.
+    end = bottom.copy()
+    clear = np.zeros(len(cols), bool)
+    for _ in range(MAX_SPLITS):
+        end_rows = np.maximum(end - 1, 0)
+        total_sum = csum[end_rows, index]
+        total_sq = csq[end_rows, index]
+        total_n = count[end_rows, index]
+        lower_sum = total_sum[None] - upper_sum
+        lower_sq = total_sq[None] - upper_sq
+        lower_n = total_n[None] - upper_n
+        with np.errstate(divide="ignore", invalid="ignore"):
+            cost = (
+                upper_sq
+                - (upper_sum**2).sum(axis=2) / upper_n
+                + lower_sq
+                - (lower_sum**2).sum(axis=2) / lower_n
+            )
+            allowed = searchable & (run_rows < end[None, :]) & (lower_n >= min_floor_rows)
+            cost = np.where(allowed & np.isfinite(cost), cost, np.inf)
+            split = cost.argmin(axis=0)
+            found = np.isfinite(cost[split, index])
+            upper_mean = upper_sum[split, index] / upper_n[split, index][:, None]
+            lower_mean = lower_sum[split, index] / lower_n[split, index][:, None]
+            step = np.linalg.norm(upper_mean - lower_mean, axis=1)
+        real = found & (step >= p.min_step)
+        if not real.any():
+            break
+        end = np.where(real, split, end)
+        clear |= real
+    # A column whose run shows no real colour step takes the median base of the columns
+    # near it that do (the same surface's base line); with none near, nothing in its run
+    # looks like floor below a standing surface: the whole run stands.
+    base = np.where(clear, _running_median(end, clear), bottom)
+    if clear.any() and not clear.all():
+        clear_cols, clear_base = cols[clear], base[clear]
+        for i in np.flatnonzero(~clear):
+            near = np.abs(clear_cols - cols[i]) <= NEIGHBOUR_COLUMNS
+            if near.any():
+                base[i] = min(int(np.median(clear_base[near])), int(bottom[i]))
+    small_standing = np.zeros_like(small_mask)
+    small_standing[:, cols] = sub & (small_rows < base[None, :])
+    # The floor the surface stands on: the run's rows just below its base.
+    floor_below = (
+        in_run
+        & clear[None, :]
+        & (run_rows >= base[None, :])
+        & (run_rows < base[None, :] + 2 * min_floor_rows)
+    )
+    lowest_base = int(base[clear].max()) if clear.any() else small_h
+    small_standing = _grow_sideways(
+        small_standing, small_mask, lab, lab[:last, cols][floor_below], lowest_base, p
+    )
+    up = cv2.resize(
+        small_standing.view(np.uint8), (width, height), interpolation=cv2.INTER_NEAREST
+    ).astype(bool)
+    standing[...] = mask & up
+    return standing
+
+
+def _running_median(values: NDArray[np.int64], use: NDArray[np.bool_]) -> NDArray[np.int64]:
+    """Each used value replaced by the median of it and its used neighbours up to
+    `BASE_MEDIAN_HALF` places either side (a plank seam under one column does not move
+    the base line there)."""
+    out = values.copy()
+    picked = np.flatnonzero(use)
+    if picked.size < 3:
+        return out
+    padded = np.pad(values[picked], BASE_MEDIAN_HALF, mode="edge")
+    windows = np.lib.stride_tricks.sliding_window_view(padded, 2 * BASE_MEDIAN_HALF + 1)
+    out[picked] = np.median(windows, axis=1).astype(np.int64)
+    return out
+
+
+def _grow_sideways(
+    seeds: NDArray[np.bool_],
+    mask: NDArray[np.bool_],
+    lab: NDArray[np.float32],
+    floor_lab: NDArray[np.float32],
+    lowest_base_row: int,
+    params: HorizonParams,
+) -> NDArray[np.bool_]:
+    """The standing surface found in the columns that cross the horizon, grown through
+    the mask into the columns beside them that do not (the same box's lower corners):
+    mask pixels connected to it, no lower than its base, whose colour is nearer the
+    surface's than that of the floor just below it (``floor_lab``), within
+    `HorizonParams.grow_tolerance` and half the way to that floor's colour."""
+    rows = slice(0, min(lowest_base_row, mask.shape[0]))
+    seeds_part, mask_part = seeds[rows], mask[rows]
+    surface = lab[rows][seeds_part]
+    if len(surface) == 0:
+        return seeds
+    mean = surface.mean(axis=0)
+    spread = float(np.sqrt(((surface - mean) ** 2).sum(axis=1).mean()))
+    # Pixel by pixel, sensor noise makes single floor pixels look like the surface; a
+    # median keeps the surface's edges where they are.
+    lab_part = cv2.medianBlur(np.ascontiguousarray(lab[rows]), 5)
+    distance = np.linalg.norm(lab_part - mean, axis=2)
+    tolerance = params.grow_tolerance
+    if len(floor_lab):
+        floor_mean = floor_lab.mean(axis=0)
+        # Never past halfway to the floor's colour: the surface is floor-coloured.
+        tolerance = min(tolerance, float(np.linalg.norm(floor_mean - mean)) / 2)
+    alike = mask_part & (distance <= tolerance + 2.0 * spread)
+    # Only beside the columns it was found in: the surface's lower corners are there,
+    # while floor of a like colour may be anywhere.
+    seed_cols = np.flatnonzero(seeds_part.any(axis=0))
+    reach = max(1, round(params.grow_reach_frac * mask.shape[1]))
+    cols = np.arange(mask.shape[1])
+    alike[:, (cols < seed_cols.min() - reach) | (cols > seed_cols.max() + reach)] = False
+    if len(floor_lab):
+        alike &= distance < np.linalg.norm(lab_part - floor_mean, axis=2)
+    alike |= seeds_part
+    count, labels = cv2.connectedComponents(alike.view(np.uint8), connectivity=4)
+    touching = np.zeros(count, dtype=bool)
+    touching[labels[seeds_part]] = True
+    touching[0] = False
+    grown = seeds.copy()
+    grown[rows] |= touching[labels]
+    return grown

@@ -1,0 +1,189 @@
+"""Standing surfaces found by the horizon (`app.perception.standing`): exact answers on
+synthetic frames, then a rendered floor-coloured box."""
+
+from __future__ import annotations
+
+import math
+from pathlib import Path
+
+import cv2
+import numpy as np
+import pytest
+
+from app.perception.standing import HorizonParams, horizon_rows, standing_across_horizon
+
+H, W = 240, 320
+HORIZON = 40
+BOX_ROWS = (10, 150)  # the box's face: its top above the horizon, its base at row 150
+BOX_COLS = (100, 220)
+FLOOR_BGR = (82, 122, 164)  # wood
+BOX_BGR = (94, 138, 176)  # about 6 CIELAB units lighter: "floor-coloured"
+PARAMS = HorizonParams(search_rows=H)  # full resolution: exact rows
+
+
+def _lab_distance(bgr_a: tuple[int, int, int], bgr_b: tuple[int, int, int]) -> float:
+    lab = cv2.cvtColor(np.array([[bgr_a, bgr_b]], np.uint8), cv2.COLOR_BGR2LAB).astype(float)
+    lab[..., 0] *= 100 / 255
+    return float(np.linalg.norm(lab[0, 0] - lab[0, 1]))
+
+
+def _scene(box_bgr: tuple[int, int, int] = BOX_BGR) -> np.ndarray:
+    """Grey wall above row 50 (the far wall's foot, below the horizon), a textured
+    wood floor below, a flat box on it."""
+    rng = np.random.default_rng(0)
+    image = np.empty((H, W, 3), np.uint8)
+    image[:] = (150, 150, 150)
+    floor = np.array(FLOOR_BGR, float) + rng.normal(0, 3, (H - 50, W, 1))
+    image[50:] = np.clip(floor, 0, 255).astype(np.uint8)
+    image[BOX_ROWS[0] : BOX_ROWS[1], BOX_COLS[0] : BOX_COLS[1]] = box_bgr
+    return image
+
+
+def _box_mask() -> np.ndarray:
+    box = np.zeros((H, W), bool)
+    box[BOX_ROWS[0] : BOX_ROWS[1], BOX_COLS[0] : BOX_COLS[1]] = True
+    return box
+
+
+def _assert_outline_within(standing: np.ndarray, expected: np.ndarray, px: int) -> None:
+    """``standing`` is ``expected`` up to ``px`` pixels at its outline (the 5x5 median
+    that keeps sensor noise from joining a surface moves its corners by up to 2 px)."""
+    kernel = np.ones((2 * px + 1, 2 * px + 1), np.uint8)
+    grown = cv2.dilate(expected.view(np.uint8), kernel).astype(bool)
+    shrunk = cv2.erode(expected.view(np.uint8), kernel).astype(bool)
+    assert not (standing & ~grown).any(), f"standing beyond {px} px of the surface"
+    assert standing[shrunk].all(), f"surface missed more than {px} px inside its outline"
+
+
+def _mask_calling_the_box_floor() -> np.ndarray:
+    """What a colour segmenter does with a floor-coloured box: floor from row 50 down,
+    and up the box's face past the horizon."""
+    mask = np.zeros((H, W), bool)
+    mask[50:] = True
+    mask |= _box_mask()
+    return mask
+
+
+def test_the_box_is_standing_down_to_its_base_and_the_floor_is_kept() -> None:
+    assert _lab_distance(FLOOR_BGR, BOX_BGR) < 8  # the premise: colour alone is close
+    mask = _mask_calling_the_box_floor()
+    standing = standing_across_horizon(mask, _scene(), np.full(W, HORIZON), PARAMS)
+    _assert_outline_within(standing, _box_mask(), 2)
+    # The base is found to the row (sensor noise may give one floor row to the box).
+    assert not standing[BOX_ROWS[1] + 1 :].any()
+    assert standing[BOX_ROWS[1] - 1, BOX_COLS[0] + 2 : BOX_COLS[1] - 2].all()
+
+
+def test_a_rug_under_the_box_stays_floor() -> None:
+    """Two floors under the surface (a dark rug in front of the box, grey tiles nearer):
+    the strongest change is rug to tiles, but the surface ends at the rug."""
+    image = _scene()
+    image[BOX_ROWS[1] :] = (140, 140, 140)
+    image[BOX_ROWS[1] : BOX_ROWS[1] + 40] = (60, 60, 120)
+    mask = np.zeros((H, W), bool)
+    mask[BOX_ROWS[1] :] = True
+    mask |= _box_mask()
+    standing = standing_across_horizon(mask, image, np.full(W, HORIZON), PARAMS)
+    _assert_outline_within(standing, _box_mask(), 2)
+    assert not standing[BOX_ROWS[1] + 1 :].any()
+
+
+def test_floor_of_the_surface_colour_is_taken_only_beside_it() -> None:
+    """Wood of nearly the box's colour far to its side is never a part of it."""
+    image = _scene()
+    image[BOX_ROWS[1] : BOX_ROWS[1] + 40] = (60, 60, 120)  # the box stands on a rug
+    standing = standing_across_horizon(
+        _mask_calling_the_box_floor(), image, np.full(W, HORIZON), PARAMS
+    )
+    reach = round(HorizonParams().grow_reach_frac * W)
+    assert standing[:, BOX_COLS[0] : BOX_COLS[1]][_box_mask()[:, BOX_COLS[0] : BOX_COLS[1]]].all()
+    assert not standing[:, : BOX_COLS[0] - reach].any()
+    assert not standing[:, BOX_COLS[1] + reach :].any()
+    assert not standing[BOX_ROWS[1] + 1 :].any()
+
+
+def test_no_floor_above_the_horizon_finds_nothing() -> None:
+    mask = np.zeros((H, W), bool)
+    mask[HORIZON - 3 :] = True  # within the margin of a calibration's error
+    standing = standing_across_horizon(mask, _scene(), np.full(W, HORIZON), PARAMS)
+    assert not standing.any()
+
+
+def test_a_surface_filling_the_view_below_the_horizon_is_all_standing() -> None:
+    image = np.full((H, W, 3), BOX_BGR, np.uint8)
+    mask = np.ones((H, W), bool)
+    standing = standing_across_horizon(mask, image, np.full(W, HORIZON), PARAMS)
+    assert standing.all()
+
+
+def test_the_columns_beside_that_stay_below_the_horizon_join_the_surface() -> None:
+    """The box's right part is cut off by the wall above row 60 in the mask (the
+    segmenter stopped there): still the same surface, down to the same base."""
+    mask = _mask_calling_the_box_floor()
+    mask[:60, 180:] = False
+    standing = standing_across_horizon(mask, _scene(), np.full(W, HORIZON), PARAMS)
+    _assert_outline_within(standing, _box_mask() & mask, 2)
+    assert standing[60 : BOX_ROWS[1] - 2, 182 : BOX_COLS[1] - 2].all()  # the short columns
+    assert not standing[BOX_ROWS[1] + 1 :].any()
+
+
+def test_floor_apart_from_a_blob_above_the_horizon_is_kept() -> None:
+    mask = np.zeros((H, W), bool)
+    mask[100:] = True
+    mask[5:20, 40:60] = True  # a stray blob up in the wall
+    standing = standing_across_horizon(mask, _scene(), np.full(W, HORIZON), PARAMS)
+    expected = np.zeros((H, W), bool)
+    expected[5:20, 40:60] = True
+    np.testing.assert_array_equal(standing, expected)
+
+
+def test_the_coarse_search_finds_the_base_within_its_factor() -> None:
+    mask = _mask_calling_the_box_floor()
+    standing = standing_across_horizon(
+        mask, _scene(), np.full(W, HORIZON), HorizonParams(search_rows=60)
+    )
+    # Rows and columns are 4 px apart; the median's 2 search pixels are 8 here.
+    _assert_outline_within(standing, _box_mask(), 4 * (2 + 1))
+    assert not standing[BOX_ROWS[1] + 4 :].any()
+
+
+def test_horizon_rows_are_the_first_valid_row_per_column() -> None:
+    valid = np.zeros((6, 3), bool)
+    valid[2:, 0] = True
+    valid[4:, 1] = True
+    np.testing.assert_array_equal(horizon_rows(valid), [2, 4, 6])
+
+
+def test_shapes_must_agree() -> None:
+    with pytest.raises(ValueError, match="must agree"):
+        standing_across_horizon(np.ones((H, W), bool), _scene(), np.full(W - 1, HORIZON))
+
+
+def test_a_rendered_floor_coloured_box_is_found_standing() -> None:
+    """The shipped world's cardboard box, 0.6 m ahead, under a mask that calls all of it
+    floor (floornet does: the box is 0.35 m tall, the camera 0.22 m)."""
+    from app.config import load_config
+    from app.mapping.frames import Pose2D
+    from app.mapping.ground_map import image_horizon_rows
+    from app.sim.setup import camera_model, renderer_from_config, sim_floor_calibration
+
+    root = Path(__file__).resolve().parents[2]
+    config = load_config(root / "config.toml", sim={"world_file": "two-rooms"})
+    renderer = renderer_from_config(config)
+    box_xy, heading, distance = (2.4, 3.7), 2.982, 0.6
+    frame = renderer.render(
+        Pose2D(
+            box_xy[0] - distance * math.cos(heading),
+            box_xy[1] - distance * math.sin(heading),
+            heading,
+        )
+    )
+    horizon = image_horizon_rows(sim_floor_calibration(camera_model(config)))
+    red, blue = frame.image[..., 2].astype(int), frame.image[..., 0].astype(int)
+    box = ~frame.floor_mask & (red - blue > 30)  # brown; the walls are grey
+    assert box[: horizon.min()].any(), "the box reaches above the horizon"
+    mask = frame.floor_mask | box
+    standing = standing_across_horizon(mask, frame.image, horizon)
+    assert (standing & box).sum() >= 0.95 * box.sum()
+    # The floor lost is the base line's width times the coarse search's 4 px rows.
+    assert (standing & frame.floor_mask).sum() <= 0.02 * frame.floor_mask.sum()
