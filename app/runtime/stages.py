@@ -549,16 +549,21 @@ class CollisionStage:
             await asyncio.sleep(self.period_s)
             if sim.robot.collisions == seen:
                 continue
-            seen = sim.robot.collisions
-            for contact in sim.robot.contacts:
-                if contact.number > len(self.events) and len(self.events) < COLLISION_EVENTS_KEPT:
-                    self.events.append(self._describe(contact.as_dict()))
-            log.warning(
-                "collision %d in the simulator: %s",
-                seen,
-                self.events[-1] if self.events else "",
-                extra={"event": "sim_collision"},
-            )
+            contacts = sim.robot.contacts
+            for contact in contacts:
+                if contact.number <= seen:
+                    continue
+                event = self._describe(contact.as_dict())
+                if len(self.events) < COLLISION_EVENTS_KEPT:
+                    self.events.append(event)
+                log.warning(
+                    "collision %d in the simulator: %s",
+                    contact.number,
+                    event,
+                    extra={"event": "sim_collision"},
+                )
+            if contacts:
+                seen = max(seen, contacts[-1].number)
 
     def _describe(self, contact: dict[str, float | int | None]) -> dict[str, object]:
         shared = self.shared

@@ -504,16 +504,23 @@ def _box_distance(box: BoxSpec, x: float, y: float) -> float:
     return math.hypot(ex, ey)
 
 
-def _point_segment_distance(
+def _nearest_on_segments(
     point: NDArray[np.float64], segments: NDArray[np.float64]
 ) -> NDArray[np.float64]:
-    """Distance from one point to each of (N, 4) segments."""
+    """(N, 2) nearest point of each of (N, 4) segments to one point."""
     p0, p1 = segments[:, :2], segments[:, 2:]
     e = p1 - p0
     length2 = np.maximum((e * e).sum(axis=1), 1e-18)
     t = np.clip(((point - p0) * e).sum(axis=1) / length2, 0.0, 1.0)
-    nearest = p0 + t[:, None] * e
-    out: NDArray[np.float64] = np.hypot(*(point - nearest).T)
+    nearest: NDArray[np.float64] = p0 + t[:, None] * e
+    return nearest
+
+
+def _point_segment_distance(
+    point: NDArray[np.float64], segments: NDArray[np.float64]
+) -> NDArray[np.float64]:
+    """Distance from one point to each of (N, 4) segments."""
+    out: NDArray[np.float64] = np.hypot(*(point - _nearest_on_segments(point, segments)).T)
     return out
 
 
@@ -818,10 +825,7 @@ class World:
         if not len(segments):
             return None
         point = np.array([x_m, y_m])
-        p0, p1 = segments[:, :2], segments[:, 2:]
-        e = p1 - p0
-        t = np.clip(((point - p0) * e).sum(axis=1) / np.maximum((e * e).sum(axis=1), 1e-18), 0, 1)
-        nearest = p0 + t[:, None] * e
+        nearest = _nearest_on_segments(point, segments)
         best = int(np.argmin(np.hypot(*(point - nearest).T)))
         return float(nearest[best, 0]), float(nearest[best, 1])
 
