@@ -290,27 +290,27 @@ class GroundMapper:
                 dtype=np.uint8,
             )
             memory.observe_colours(patch_bgr, patch, index, self._near_cells)
+        # Geometry over colour: what parallax or the horizon found standing is not
+        # floor, whatever its colour (a floor-coloured box or wall panel); it is no
+        # longer known floor (a textureless face can pass parallax as flat) and its
+        # colour is unlearned.
+        standing_image = standing_px
         if tested is not None:
-            # Geometry over colour: what parallax found flat is known floor from now on;
-            # what it found standing is not floor, whatever its colour (a floor-coloured
-            # box or wall panel), and its colour is unlearned.
+            # What parallax found flat is known floor from now on.
             flat = tested.floor & tested.tested & ~tested.standing
             memory.confirm_cells(index[birdseye_floor_patch(flat, self.birdseye) == FLOOR])
-            standing = birdseye_floor_patch(tested.standing, self.birdseye) == FLOOR
+            standing_image = (
+                tested.standing if standing_image is None else tested.standing | standing_image
+            )
+        if standing_image is not None:
+            standing = birdseye_floor_patch(standing_image, self.birdseye) == FLOOR
             standing_bgr = (
-                image[tested.standing][::STANDING_COLOUR_STRIDE]
+                image[standing_image][::STANDING_COLOUR_STRIDE]
                 if image is not None and image.ndim == 3
                 else None
             )
             memory.mark_standing(index[standing], standing_bgr)
             patch[standing] = NOT_FLOOR
-        if standing_px is not None and image is not None:
-            # As parallax's standing: no longer known floor (a textureless face can
-            # pass the parallax test as flat), its colour unlearned.
-            standing_cells = birdseye_floor_patch(standing_px, self.birdseye) == FLOOR
-            memory.mark_standing(
-                index[standing_cells], image[standing_px][::STANDING_COLOUR_STRIDE]
-            )  # the patch has them as not floor already: the mask lost them above
         memory.drive_over(T_world_robot, self.mapping.robot_radius_m)
         corrected = memory.correct_patch(patch, index)
         summary = self.grid.update(patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot)
