@@ -110,6 +110,10 @@ class PerceptionConfig(StrictModel):
     zone_min_floor_confidence: Fraction = 0.5
     """Below this ``zone_floor_confidence`` the safe zone is taken for an obstacle, not
     floor: the way ahead counts as blocked and the robot turns to look elsewhere."""
+    learned_floor_pass_period_s: Annotated[float, Field(ge=0.0, le=10.0)] = 1.0
+    """The daemon runs ``floornet``'s second pass for a learned floor colour (a whole
+    extra network run) at most this often; on the frames between, the map takes no
+    evidence where the pass would have looked. 0: on every frame that needs one."""
     safe_zone: SafeZoneConfig = SafeZoneConfig()
     junction: JunctionConfig = JunctionConfig()
 

@@ -46,6 +46,8 @@ class FloorMsg:
     ``zone_floor_confidence`` (0..1) is how sure the segmenter is that the safe zone in
     front of the robot is floor (`app.perception.pipeline.FloorResult`); below
     ``perception.zone_min_floor_confidence`` the way ahead counts as blocked.
+    ``unsure_mask`` (or None) is where a deferred learned-floor pass could have found
+    floor: the map takes no evidence there from this frame.
     """
 
     seq: int
@@ -56,6 +58,7 @@ class FloorMsg:
     method: str
     timings_ms: dict[str, float]
     zone_floor_confidence: float
+    unsure_mask: NDArray[np.bool_] | None = field(default=None, repr=False)
 
     def age_s(self, now_s: float | None = None) -> float:
         return (time.monotonic() if now_s is None else now_s) - self.capture_s

@@ -16,7 +16,7 @@ from numpy.typing import NDArray
 from app.config import CameraConfig, MappingConfig
 from app.mapping.calibration import FloorCalibration
 from app.mapping.floor_memory import FloorMemory, patch_world_index
-from app.mapping.frames import FLOOR, NOT_FLOOR, GroundGrid, Pose2D
+from app.mapping.frames import FLOOR, NOT_FLOOR, UNSEEN, GroundGrid, Pose2D
 from app.mapping.frontiers import (
     FrontierParams,
     FrontierSearch,
@@ -246,13 +246,16 @@ class GroundMapper:
         T_world_robot: Pose2D,
         now_s: float,
         image: NDArray[np.uint8] | None = None,
+        *,
+        unsure_mask: NDArray[np.bool_] | None = None,
     ) -> MapUpdate:
         """Fuse one frame's floor mask seen at ``T_world_robot`` (the travel from the
         previous call's pose fades the older evidence; time alone never does). With the
         frame's ``image`` (BGR or grey), the floor is first extended where motion parallax
         against an earlier frame confirms it (`app.perception.planar`); ``now_s`` paces
         that test and the scan match, which may correct ``T_world_robot`` before the
-        frame is fused (`MapUpdate.correction`)."""
+        frame is fused (`MapUpdate.correction`). Not-floor pixels of ``unsure_mask``
+        (same size as the mask) give no evidence: they count as unseen."""
         tested: ParallaxResult | None = None
         if image is not None and self.parallax is not None:
             floor_mask, tested = self._confirm_by_parallax(floor_mask, image, T_world_robot, now_s)
@@ -265,6 +268,9 @@ class GroundMapper:
             else:
                 standing_px = None
         patch = birdseye_floor_patch(floor_mask, self.birdseye)
+        if unsure_mask is not None:
+            unsure = birdseye_floor_patch(unsure_mask, self.birdseye) == FLOOR
+            patch[unsure & (patch == NOT_FLOOR)] = UNSEEN
         # The thesis's safe-zone assumption: the strip just ahead of the robot, below the
         # camera's view, is free floor.
         patch[self.blind_zone] = FLOOR

@@ -54,6 +54,7 @@ from app.perception.floor_net import (
     blob_for_reference,
     floor_mask,
     learned_floor_pass,
+    learned_floor_unsure,
     scaled_lab,
 )
 from app.perception.floor_weights import FIRST_PASS_WEIGHTS, SECOND_PASS_WEIGHTS
@@ -90,6 +91,9 @@ class FloorResult:
         network time), or None when no second pass ran.
     learned_floor_added_share : float
         Share of the network's output cells that second pass made floor.
+    unsure_mask : (H, W) bool or None
+        On a frame whose second pass was deferred (`FloorSegmenter.learned_pass_due`):
+        where that pass could have found floor; the map takes no evidence there.
     """
 
     floor_mask: NDArray[np.bool_]
@@ -101,6 +105,7 @@ class FloorResult:
     zone_floor_confidence: float = 1.0
     learned_floor_reference: tuple[float, float, float] | None = None
     learned_floor_added_share: float = 0.0
+    unsure_mask: NDArray[np.bool_] | None = None
 
 
 def trapezoid_from_config(zone: SafeZoneConfig) -> Trapezoid:
@@ -167,6 +172,9 @@ class FloorSegmenter:
         """Floor colours learned on the way (scaled Lab, `app.mapping.floor_memory`):
         ``floornet`` runs a second pass relative to the one that explains the most of
         what its first pass left out. Set by the daemon before each frame."""
+        self.learned_pass_due = True
+        """False defers the second pass (the daemon's budget): the frame reports where
+        it could have found floor as `FloorResult.unsure_mask` instead."""
         if self.method == "floornet":
             # Loaded here, not on the first frame: a missing model file fails at start-up.
             self._net = FloorNet(Path(config.floornet_model_path or DEFAULT_MODEL_PATH))
@@ -330,14 +338,26 @@ def _segment_floornet(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorResul
     output = seg._net.run(blob, seg._net_zone_out)
     watch.lap("network")
     learned = None
-    if seg.learned_floor:
+    unsure = None
+    if seg.learned_floor and seg.learned_pass_due:
         learned = learned_floor_pass(
             seg._net, lab, output, zone_colour, seg._net_zone_out, seg.learned_floor
         )
         # The premise stays the first pass's: the safe zone is judged as it is.
         output = replace(output, probability=learned.probability)
         watch.lap("learned_floor")
+    elif seg.learned_floor:
+        unsure_cells = learned_floor_unsure(lab, output, zone_colour, seg.learned_floor)
+        if unsure_cells is not None:
+            unsure = cv2.resize(
+                unsure_cells.view(np.uint8),
+                (zone_mask.shape[1], zone_mask.shape[0]),
+                interpolation=cv2.INTER_NEAREST,
+            ).astype(bool)
+        watch.lap("learned_floor_unsure")
     floor = floor_mask(output, zone_mask, min_zone_confidence=seg.config.zone_min_floor_confidence)
+    if unsure is not None:
+        unsure &= ~floor
     watch.lap("combine")
     return FloorResult(
         floor,
@@ -349,6 +369,7 @@ def _segment_floornet(seg: FloorSegmenter, bgr: NDArray[np.uint8]) -> FloorResul
         zone_floor_confidence=output.zone_floor_probability,
         learned_floor_reference=learned.reference if learned is not None else None,
         learned_floor_added_share=learned.added_share if learned is not None else 0.0,
+        unsure_mask=unsure,
     )
 
 

@@ -12,7 +12,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from typing import Protocol
+from typing import Protocol, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -47,6 +47,14 @@ class Segmenter(Protocol):
     """What perception needs (`FloorSegmenter`; tests pass slow or failing ones)."""
 
     def segment(self, image: NDArray[np.uint8]) -> FloorResult: ...
+
+
+@runtime_checkable
+class LearnsFloor(Protocol):
+    """A segmenter that uses floor colours learned on the way (`FloorSegmenter`)."""
+
+    learned_floor: tuple[tuple[float, float, float], ...]
+    learned_pass_due: bool
 
 
 # -- pure helpers (the mapping thread, the web and the benchmarks use them) -------------
@@ -169,6 +177,7 @@ class PerceptionStage:
         shared = self.shared
         segmenter = self.segmenter_factory(shared.config.perception)
         backoff = LearnedPassBackoff()
+        next_pass_s = -math.inf
         reader = SlotReader(shared.frames)
         while True:
             frame = await reader.next()
@@ -177,8 +186,17 @@ class PerceptionStage:
                 segmenter = self.segmenter_factory(shared.config.perception)
             start = shared.clock()
             self.frame_ages.append(start - frame.capture_s)
-            if hasattr(segmenter, "learned_floor"):
-                segmenter.learned_floor = backoff.eligible(shared.floor_appearances)
+            if isinstance(segmenter, LearnsFloor):
+                # A second pass is a whole network run on the way to the motors: at most
+                # one per period; between them only colours that have added floor hold
+                # back the map's evidence (a fruitless one, a wall's, must not).
+                due = start >= next_pass_s
+                segmenter.learned_pass_due = due
+                segmenter.learned_floor = (
+                    backoff.eligible(shared.floor_appearances)
+                    if due
+                    else backoff.fruitful(shared.floor_appearances)
+                )
             try:
                 result = await self.worker.run(segmenter.segment, frame.image)
             except (ImageError, SafeZoneError) as exc:
@@ -190,6 +208,7 @@ class PerceptionStage:
             shared.counters.frames_perceived += 1
             backoff.observe(result.learned_floor_reference, result.learned_floor_added_share)
             if result.learned_floor_reference is not None:
+                next_pass_s = start + shared.config.perception.learned_floor_pass_period_s
                 shared.counters.learned_floor_passes += 1
                 if result.learned_floor_added_share >= backoff.MIN_ADDED_SHARE:
                     shared.counters.learned_floor_passes_adding += 1
@@ -203,6 +222,7 @@ class PerceptionStage:
                     result.method,
                     result.timings_ms,
                     result.zone_floor_confidence,
+                    result.unsure_mask,
                 )
             )
 
@@ -249,33 +269,20 @@ class MappingStage:
         self.exploration = self._new_exploration()
 
     def step(
-        self,
-        mapper: GroundMapper,
-        floor: FloorMsg,
-        pose: Pose2D,
-        now_pose: Pose2D,
-        frontier_due: bool,
-        snapshot_due: bool,
-        home_xy: tuple[float, float] | None = None,
-        home_goal: FrontierGoal | None = None,
-    ) -> tuple[MapMsg, FrontierSearch | None, WorldMapMsg | None, MapUpdate, FrontierGoal | None]:
-        """In the mapping thread: fuse the frame, maybe search frontiers, cut the window,
-        maybe copy the whole map for readers. With ``home_xy`` (returning home) the goal
-        is the way there: found anew with each search, else ``home_goal`` (the last)."""
+        self, mapper: GroundMapper, floor: FloorMsg, pose: Pose2D, now_pose: Pose2D
+    ) -> tuple[MapMsg, MapUpdate]:
+        """In the mapping thread, on the way to the motors: fuse the frame and cut the
+        window steering reads, with the goal of the latest frontier search (searched
+        after the message is out, `plan`: a search is up to 0.5 s old anyway)."""
         config = self.shared.config
-        update = mapper.update(floor.floor_mask, pose, floor.capture_s, floor.image)
+        update = mapper.update(
+            floor.floor_mask, pose, floor.capture_s, floor.image, unsure_mask=floor.unsure_mask
+        )
         if update.correction is not None:
             # The frame went into the map at the corrected pose; odometry follows in `run`.
-            pose = update.correction.compose(pose)
             now_pose = update.correction.compose(now_pose)
-        search = mapper.frontiers(now_pose) if frontier_due else None
-        frontier = search if search is not None else self.frontier
         params = mapper.grid.params
         world = mapper.grid.world_grid
-        if home_xy is None:
-            home_goal = None
-        elif search is not None:
-            home_goal = path_to_point(search, world, home_xy, config.steering.home_tolerance_m / 2)
         cells, window = map_window(
             mapper.grid.log_odds,
             world,
@@ -290,42 +297,75 @@ class MappingStage:
             config.mapping.robot_radius_m,
             config.mapping.max_range_m,
         )
-        goal = frontier.goal if frontier is not None else None
-        reason = frontier.reason if frontier is not None else "not searched yet"
-        if home_xy is not None:
-            goal = home_goal
-            reason = "returning to the start" if goal is not None else "no path to the start"
-        goal_xy = goal.xy if goal is not None else None
-        path = path_to_xy(goal, world)
-        done = time.monotonic()
+        goal, reason = self._goal_and_reason(self.frontier, self.home_goal)
         msg = MapMsg(
             seq=floor.seq,
             capture_s=floor.capture_s,
-            done_s=done,
-            T_odom_robot=pose,
+            done_s=time.monotonic(),
+            T_odom_robot=update.correction.compose(pose) if update.correction else pose,
             window_cells=cells,
             window_grid=window,
-            path_xy=path,
-            goal_xy=goal_xy,
+            path_xy=path_to_xy(goal, world),
+            goal_xy=goal.xy if goal is not None else None,
             frontier_reason=reason,
             clearance_ahead_m=clearance,
         )
+        return msg, update
+
+    def _goal_and_reason(
+        self, frontier: FrontierSearch | None, home_goal: FrontierGoal | None
+    ) -> tuple[FrontierGoal | None, str]:
+        if self.returning_home:
+            if home_goal is not None:
+                return home_goal, "returning to the start"
+            return None, "no path to the start"
+        if frontier is None:
+            return None, "not searched yet"
+        return frontier.goal, frontier.reason
+
+    def plan(
+        self,
+        mapper: GroundMapper,
+        floor: FloorMsg,
+        now_pose: Pose2D,
+        frontier_due: bool,
+        snapshot_due: bool,
+        home_xy: tuple[float, float] | None = None,
+        home_goal: FrontierGoal | None = None,
+    ) -> tuple[FrontierSearch | None, WorldMapMsg | None, FrontierGoal | None]:
+        """In the mapping thread, after the frame's message is out: maybe search
+        frontiers, maybe copy the whole map for readers. With ``home_xy`` (returning
+        home) the goal is the way there: found anew with each search, else ``home_goal``
+        (the last)."""
+        config = self.shared.config
+        search = mapper.frontiers(now_pose) if frontier_due else None
+        frontier = search if search is not None else self.frontier
+        world = mapper.grid.world_grid
+        if home_xy is None:
+            home_goal = None
+        elif search is not None:
+            home_goal = path_to_point(search, world, home_xy, config.steering.home_tolerance_m / 2)
         snapshot = None
         if snapshot_due:
+            goal, reason = self._goal_and_reason(frontier, home_goal)
             whole = mapper.grid.classify()
             whole.setflags(write=False)
             snapshot = WorldMapMsg(
                 seq=floor.seq,
-                done_s=done,
+                done_s=time.monotonic(),
                 cells=whole,
                 grid=world,
                 T_odom_robot=now_pose,
-                path_xy=path,
-                goal_xy=goal_xy,
+                path_xy=path_to_xy(goal, world),
+                goal_xy=goal.xy if goal is not None else None,
                 frontier_reason=reason,
                 frontier_clusters=len(frontier.clusters) if frontier is not None else 0,
             )
-        return msg, search, snapshot, update, home_goal
+        return search, snapshot, home_goal
+
+    @property
+    def returning_home(self) -> bool:
+        return self.exploration.phase is Phase.RETURNING and self.shared.autonomous
 
     async def run(self) -> None:
         shared = self.shared
@@ -336,24 +376,12 @@ class MappingStage:
             if mapper is None or shared.calibrating:
                 continue
             start = shared.clock()
-            frontier_due = start >= self._frontier_due_s
-            if frontier_due:
-                self._frontier_due_s = start + shared.config.steering.frontier_period_s
-            snapshot_due = start >= self._snapshot_due_s
-            if snapshot_due:
-                self._snapshot_due_s = start + WORLD_MAP_PERIOD_S
-            exploration = self.exploration
-            returning = exploration.phase is Phase.RETURNING and shared.autonomous
-            msg, search, snapshot, update, home_goal = await self.worker.run(
+            msg, update = await self.worker.run(
                 self.step,
                 mapper,
                 floor,
                 shared.odometry.pose_at(floor.capture_s),
                 shared.odometry.pose,
-                frontier_due,
-                snapshot_due,
-                exploration.home_xy if returning else None,
-                self.home_goal,
             )
             if mapper is not shared.mapper:
                 continue  # recalibrated or replaced meanwhile: this map is gone
@@ -361,29 +389,57 @@ class MappingStage:
                 shared.odometry.correct(update.correction)  # here: odometry is the loop's
             if update.match_s is not None:
                 shared.stages.add("scan_match", update.match_s)
-            if search is not None:
-                self.frontier = search
-                self.home_goal = home_goal
-                if shared.autonomous and not shared.mux.estopped:
-                    self._track_goal(mapper, search, start)
-                    if exploration is self.exploration:
-                        change = exploration.observe(
-                            search,
-                            start,
-                            shared.odometry.pose,
-                            home_reachable=home_goal is not None or not returning,
-                        )
-                        if change is not None and self.on_phase is not None:
-                            self.on_phase(change)
-                else:
-                    self._goal_since = None  # patience counts only while exploring
             shared.stages.add("mapping", shared.clock() - start)
             shared.counters.frames_mapped += 1
-            if snapshot is not None:
-                shared.floor_appearances = mapper.memory.appearances()
             shared.maps.publish(msg)
-            if snapshot is not None:
-                shared.world_maps.publish(snapshot)
+            await self._plan(mapper, floor)
+
+    async def _plan(self, mapper: GroundMapper, floor: FloorMsg) -> None:
+        """The frontier search and the whole-map copy, when due (off the motors' path)."""
+        shared = self.shared
+        now = shared.clock()
+        frontier_due = now >= self._frontier_due_s
+        if frontier_due:
+            self._frontier_due_s = now + shared.config.steering.frontier_period_s
+        snapshot_due = now >= self._snapshot_due_s
+        if snapshot_due:
+            self._snapshot_due_s = now + WORLD_MAP_PERIOD_S
+        if not (frontier_due or snapshot_due):
+            return
+        exploration = self.exploration
+        returning = self.returning_home
+        search, snapshot, home_goal = await self.worker.run(
+            self.plan,
+            mapper,
+            floor,
+            shared.odometry.pose,
+            frontier_due,
+            snapshot_due,
+            exploration.home_xy if returning else None,
+            self.home_goal,
+        )
+        if mapper is not shared.mapper:
+            return
+        if search is not None:
+            self.frontier = search
+            self.home_goal = home_goal
+            if shared.autonomous and not shared.mux.estopped:
+                self._track_goal(mapper, search, now)
+                if exploration is self.exploration:
+                    change = exploration.observe(
+                        search,
+                        now,
+                        shared.odometry.pose,
+                        home_reachable=home_goal is not None or not returning,
+                    )
+                    if change is not None and self.on_phase is not None:
+                        self.on_phase(change)
+            else:
+                self._goal_since = None  # patience counts only while exploring
+        shared.stages.add("planning", shared.clock() - now)
+        if snapshot is not None:
+            shared.floor_appearances = mapper.memory.appearances()
+            shared.world_maps.publish(snapshot)
 
     def _give_up(self, mapper: GroundMapper, xy: tuple[float, float]) -> None:
         # Between mapping steps (this loop awaits each one), so the worker is not reading.

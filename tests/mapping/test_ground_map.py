@@ -188,3 +188,27 @@ def test_a_floor_coloured_box_the_mask_calls_floor_is_an_obstacle_by_the_horizon
     assert clear_found == pytest.approx(expected, abs=0.06)
     assert clear_missed > expected + 1.0
     assert mapper.standing_frames == 1 and plain.standing_frames == 0
+
+
+def test_unsure_pixels_give_no_evidence_and_the_rest_fuses_as_without() -> None:
+    """A deferred learned-floor pass: where it could have found floor the first pass's
+    "not floor" must not become a wall (the pass, later, may call it floor)."""
+    plain, held_back = make_mapper(), make_mapper()
+    pose = Pose2D(0.0, 0.0, 0.0)
+    mask = wall_mask(plain, 1.2)  # the first pass stops at 1.2 m: the kitchen threshold
+    rows = plain.calibration.ground_to_image(np.array([[1.2, 0.0], [1.6, 0.0]]))[:, 1]
+    unsure = np.zeros_like(mask)
+    # 1.2-1.6 m: the kitchen's tiles, which a pass relative to their colour could call
+    # floor; the cabinets beyond, 1.6 m ahead, are not unsure.
+    unsure[int(np.ceil(rows[1])) : int(np.ceil(rows[0]))] = True
+    for t in range(3):
+        plain.update(mask, pose, now_s=0.1 * t)
+        held_back.update(mask, pose, now_s=0.1 * t, unsure_mask=unsure)
+    grid = plain.grid.world_grid
+    row_col = grid.cell_of(np.array([[0.8, 0.0], [1.22, 0.0], [1.4, 0.0], [1.62, 0.0]]))
+    states = [[int(m.grid.classify()[r, c]) for r, c in row_col] for m in (plain, held_back)]
+    assert states == [[FREE, OCCUPIED, UNKNOWN, UNKNOWN], [FREE, UNKNOWN, UNKNOWN, OCCUPIED]]
+    # Up to the unsure band the evidence is the same, cell for cell.
+    near = grid.cell_of(np.array([[x, 0.0] for x in np.arange(0.3, 1.15, 0.05)]))
+    for r, c in near:
+        assert plain.grid.log_odds[r, c] == held_back.grid.log_odds[r, c]

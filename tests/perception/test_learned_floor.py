@@ -8,9 +8,13 @@ from app.config import DEFAULT_CONFIG_PATH, load_config
 from app.mapping.floor_memory import bgr_to_scaled_lab
 from app.mapping.frames import Pose2D
 from app.perception.floor_net import (
+    OUTPUT_HEIGHT_PX,
+    OUTPUT_WIDTH_PX,
+    FloorNetOutput,
     LearnedPassBackoff,
     choose_learned_reference,
     connected_to,
+    learned_floor_unsure,
 )
 from app.perception.pipeline import FloorSegmenter
 from app.sim.setup import renderer_from_config
@@ -69,6 +73,20 @@ def test_a_learned_tile_colour_makes_the_kitchen_floor_from_the_wood_floor() -> 
     result = segmenter.segment(frame.image)
     assert result.learned_floor_reference is not None
     assert result.learned_floor_added_share >= 0.1
+    assert result.unsure_mask is None
+
+    # Deferred (the daemon's budget): the first pass's mask, and where the pass would
+    # have looked is unsure: it covers the floor the pass adds and none of the first's.
+    segmenter.learned_pass_due = False
+    deferred = segmenter.segment(frame.image)
+    first = deferred.floor_mask
+    assert deferred.learned_floor_reference is None
+    assert deferred.unsure_mask is not None
+    assert not (deferred.unsure_mask & first).any()
+    added = result.floor_mask & ~first
+    assert (deferred.unsure_mask & added).sum() >= 0.9 * added.sum()
+    assert not deferred.unsure_mask[round(0.6 * first.shape[0]) :].any()  # not the near field
+    segmenter.learned_pass_due = True
     segmenter.learned_floor = ()
     assert scores()[0] == iou_before
 
@@ -106,3 +124,39 @@ def test_a_pass_that_adds_floor_clears_its_colour_and_none_ran_changes_nothing()
         backoff.observe(None, 0.0)
     backoff.observe(None, 0.0)
     assert backoff.eligible((tiles,)) == (tiles,)
+
+
+def test_unsure_cells_are_the_far_open_cells_of_the_learned_colour_grown_by_one() -> None:
+    h, w = OUTPUT_HEIGHT_PX, OUTPUT_WIDTH_PX
+    tiles, wall = (0.5, 0.1, 0.1), (-0.5, 0.0, 0.0)
+    lab = np.zeros((h, w, 3), np.float32)  # the wood, as the safe zone
+    lab[10:22, 30:42] = tiles  # a patch of the kitchen's tiles, far ahead
+    lab[0:5] = wall
+    probability = np.zeros((h, w), np.float32)
+    probability[30:] = 0.9  # the first pass found the wood from row 30 down
+    first = FloorNetOutput(probability, 0.9)
+    zone = np.zeros(3, np.float32)
+    # At output size the frame is already the network's size: lab_scaled == lab_out.
+    big = np.repeat(np.repeat(lab, 2, axis=0), 2, axis=1)
+    unsure = learned_floor_unsure(big, first, zone, (tiles,))
+    assert unsure is not None
+    expected = np.zeros((h, w), bool)
+    expected[9:23, 29:43] = True
+    assert np.array_equal(unsure, expected)
+    # No learned colour, or none that explains open far cells: nothing is unsure.
+    assert learned_floor_unsure(big, first, zone, ()) is None
+    assert learned_floor_unsure(big, first, zone, ((0.0, 0.5, -0.5),)) is None
+
+
+def test_only_colours_whose_last_pass_added_floor_are_fruitful() -> None:
+    backoff = LearnedPassBackoff()
+    wall, tiles = (0.3, 0.0, 0.0), (0.5, 0.1, 0.1)
+    assert backoff.fruitful((wall, tiles)) == ()  # not tried yet: the first pass stands
+    backoff.observe(tiles, 0.05)
+    backoff.observe(wall, 0.0)
+    assert backoff.fruitful((wall, tiles)) == (tiles,)
+    backoff.observe(tiles, 0.0)  # its latest pass added nothing
+    assert backoff.fruitful((wall, tiles)) == ()
+    backoff.observe(tiles, 0.05)
+    backoff.eligible((wall,))  # tiles no longer learned: forgotten
+    assert backoff.fruitful((wall, tiles)) == ()

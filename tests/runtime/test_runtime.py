@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import itertools
 import logging
 import threading
 import time
@@ -183,6 +184,44 @@ async def test_learned_floor_second_passes_are_counted_in_the_report() -> None:
         assert adding == rt.counters.learned_floor_passes_adding
         assert abs(adding - memory["second_passes"] / 2) <= 1
         assert memory["second_pass_share"] == pytest.approx(1.0, abs=0.2)
+
+
+class BudgetedPassSegmenter:
+    """Runs (says it ran) a learned-floor pass, adding floor, whenever the daemon lets it."""
+
+    def __init__(self, config: PerceptionConfig) -> None:
+        self.inner = FloorSegmenter(config)
+        self.learned_floor: tuple[tuple[float, float, float], ...] = ()
+        self.learned_pass_due = True
+        self.due: list[tuple[float, bool]] = []
+
+    def segment(self, image: np.ndarray) -> FloorResult:
+        self.due.append((time.monotonic(), self.learned_pass_due))
+        result = self.inner.segment(image)
+        if not self.learned_pass_due:
+            return result
+        return replace(
+            result, learned_floor_reference=(0.1, 0.0, 0.0), learned_floor_added_share=0.1
+        )
+
+
+async def test_learned_floor_passes_run_at_most_once_per_period() -> None:
+    made: list[BudgetedPassSegmenter] = []
+
+    def factory(config: PerceptionConfig) -> BudgetedPassSegmenter:
+        made.append(BudgetedPassSegmenter(config))
+        return made[-1]
+
+    config = sim_config(perception={"learned_floor_pass_period_s": 0.25})
+    async with running(config, segmenter_factory=factory) as (rt, _):
+        await wait_for(lambda: rt.counters.frames_perceived >= 40, 10.0, "40 frames")
+    due = made[-1].due
+    passes = [t for t, d in due if d]
+    span_s = due[-1][0] - due[0][0]
+    assert 2 <= len(passes) <= span_s / 0.25 + 1
+    assert all(b - a >= 0.25 - 0.002 for a, b in itertools.pairwise(passes))
+    assert len(due) - len(passes) >= 20  # the frames between: the first pass only
+    assert rt.counters.learned_floor_passes == len(passes)
 
 
 async def test_a_safe_zone_that_is_not_floor_stops_forward_motion_until_it_is_again() -> None:
