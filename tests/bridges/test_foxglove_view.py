@@ -388,12 +388,20 @@ async def test_every_topic_decodes_and_the_view_stops_on_request() -> None:
                 async with asyncio.timeout(5.0):
                     while True:
                         await client.ws.recv()
-    # SO_REUSEADDR, as every server sets it: the closed connection may linger in
-    # TIME_WAIT on this port (whichever side closed first), but no listener may.
-    with socket.socket() as again:
-        again.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
-        again.bind(("127.0.0.1", port))
-        again.listen()
+    # The port is free again once the SDK's own thread has closed its listener (stop()
+    # only asks it to). SO_REUSEADDR, as every server sets it: the closed connection
+    # may linger in TIME_WAIT on this port, but no listener may.
+    deadline = time.monotonic() + 5.0
+    while True:
+        with socket.socket() as again:
+            again.setsockopt(socket.SOL_SOCKET, socket.SO_REUSEADDR, 1)
+            try:
+                again.bind(("127.0.0.1", port))
+                again.listen()
+                break
+            except OSError:
+                assert time.monotonic() < deadline, f"port {port} still in use 5 s after stop"
+        await asyncio.sleep(0.02)
 
 
 # -- the view in a daemon on the simulator -------------------------------------------------
