@@ -170,3 +170,31 @@ async def test_startup_objects_are_frozen_once_the_first_map_exists() -> None:
     maps.publish(1)
     await asyncio.wait_for(task, 2.0)
     assert gc.get_freeze_count() >= before + len(made_since)
+
+
+RELEASE_CHILD = """
+import sys
+from app.daemon import release_freed_memory
+
+def rss_mb():
+    for line in open("/proc/self/status"):
+        if line.startswith("VmRSS"):
+            return int(line.split()[1]) / 1024
+
+blocks = [bytearray(32 * 1024) for _ in range(6000)]  # ~190 MB on the heap
+kept = blocks[::100]  # pins scattered chunks: the heap cannot shrink from its top alone
+del blocks
+before = rss_mb()
+assert release_freed_memory()
+print(before, rss_mb())
+"""
+
+
+def test_freed_heap_memory_goes_back_to_the_system_after_the_warm_up() -> None:
+    """What the kernel warm-up freed must not stay resident for the daemon's life."""
+    out = subprocess.run(
+        [sys.executable, "-c", RELEASE_CHILD], capture_output=True, text=True, timeout=60
+    )
+    assert out.returncode == 0, out.stderr
+    before, after = map(float, out.stdout.split())
+    assert before - after > 100, (before, after)
