@@ -302,7 +302,7 @@ def learned_floor_pass(
     reference = choose_learned_reference(lab_out, open_cells, zone_colour, learned)
     if reference is None:
         return LearnedFloorPass(probability, None, 0.0)
-    near_field_row = round(LEARNED_FLOOR_MAX_ROW_FRACTION * first_floor.shape[0])
+    near_field_row = _near_field_row(first_floor.shape[0])
     second = net.run(
         blob_for_reference(lab_scaled, np.asarray(reference, dtype=np.float32)), zone_mask_out
     )
@@ -317,6 +317,11 @@ def learned_floor_pass(
     )
 
 
+def _near_field_row(rows: int) -> int:
+    """The first output row of the near field, where no learned floor is added."""
+    return round(LEARNED_FLOOR_MAX_ROW_FRACTION * rows)
+
+
 def _open_far_cells(
     lab_scaled: NDArray[np.float32], first_floor: NDArray[np.bool_]
 ) -> tuple[NDArray[np.float32], NDArray[np.bool_]]:
@@ -328,7 +333,7 @@ def _open_far_cells(
         dtype=np.float32,
     )
     open_cells = ~first_floor
-    open_cells[round(LEARNED_FLOOR_MAX_ROW_FRACTION * first_floor.shape[0]) :, :] = False
+    open_cells[_near_field_row(first_floor.shape[0]) :, :] = False
     return lab_out, open_cells
 
 
