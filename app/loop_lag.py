@@ -61,6 +61,8 @@ class LoopLagMonitor:
         self.max_s = 0.0
         """The largest lag ever recorded, in seconds."""
         self._bucket_counts = [0] * (len(buckets_s) + 1)  # the last one is +Inf
+        self._summary: dict[str, float | int | None] | None = None
+        self._summary_count = 0
 
     async def run(self) -> None:
         """Measure until cancelled."""
@@ -88,19 +90,28 @@ class LoopLagMonitor:
             out.append((bound, running))
         return out
 
-    def summary_ms(self) -> dict[str, float | int | None]:
+    def summary_ms(self, *, reuse_within: int = 0) -> dict[str, float | int | None]:
         """``p50`` and ``p99`` of the window, ``max`` of the run (milliseconds, None
-        before the first sample) and ``samples`` ever recorded."""
+        before the first sample) and ``samples`` ever recorded.
+
+        ``reuse_within``: return the last summary while fewer than this many lags were
+        recorded since it. Sorting the 30 000-lag window holds the GIL for milliseconds;
+        the status endpoint, polled up to 100 times a second, must not do it each time.
+        """
         if not self.lags_s:
             return {"p50": None, "p99": None, "max": None, "samples": 0}
+        if self._summary is not None and self.count - self._summary_count < reuse_within:
+            return dict(self._summary)
         ordered = sorted(self.lags_s)
 
         def pick(q: float) -> float:
             return round(ordered[round(q * (len(ordered) - 1))] * 1e3, 2)
 
-        return {
+        self._summary = {
             "p50": pick(0.50),
             "p99": pick(0.99),
             "max": round(self.max_s * 1e3, 2),
             "samples": self.count,
         }
+        self._summary_count = self.count
+        return dict(self._summary)

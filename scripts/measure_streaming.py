@@ -74,7 +74,7 @@ async def poll_status(url: str, until_s: float, rate_hz: float) -> tuple[int, in
 
 async def main_async(args: argparse.Namespace) -> int:
     port, viser_port = free_port(), free_port()
-    report = Path(tempfile.mkdtemp()) / "report.json"
+    report = args.report or Path(tempfile.mkdtemp()) / "report.json"
     env = {
         **os.environ,
         "FLOORNAV_WEB__PORT": str(port),
@@ -123,6 +123,8 @@ async def main_async(args: argparse.Namespace) -> int:
     data = json.loads(report.read_text())
     print(f"daemon: fps {data['fps']}, capture->command latency ms {data['latency_ms']}")
     print(f"daemon: event-loop lag ms {data['loop_lag_ms']}, faults {data['faults']}")
+    stages = ", ".join(f"{k} {v['p50']}/{v['p95']}" for k, v in data["stage_ms"].items())
+    print(f"daemon: stage ms p50/p95: {stages}")
     if polls:
         answered, failed = results[-1]  # type: ignore[misc]
         rate = answered / max(1e-9, args.duration_s - 3)
@@ -143,6 +145,9 @@ def main() -> int:
     parser.add_argument("--clients", type=int, default=1)
     parser.add_argument(
         "--status-rate", type=float, default=0.0, help="GET /api/status this often (per s)"
+    )
+    parser.add_argument(
+        "--report", type=Path, default=None, help="keep the daemon's run report here"
     )
     return asyncio.run(main_async(parser.parse_args()))
 

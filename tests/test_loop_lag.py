@@ -71,6 +71,25 @@ def test_window_bounds_the_percentiles_not_the_totals() -> None:
     assert monitor.cumulative_buckets()[-1] == (math.inf, 4)
 
 
+def test_a_reused_summary_is_refreshed_after_so_many_new_lags() -> None:
+    monitor = LoopLagMonitor()
+    monitor.record(0.001)
+    first = monitor.summary_ms(reuse_within=3)
+    assert first == {"p50": 1.0, "p99": 1.0, "max": 1.0, "samples": 1}
+    monitor.record(0.5)
+    monitor.record(0.5)
+    assert monitor.summary_ms(reuse_within=3) == first  # 2 new lags: the same summary
+    monitor.record(0.5)
+    assert monitor.summary_ms(reuse_within=3) == {
+        "p50": 500.0,
+        "p99": 500.0,
+        "max": 500.0,
+        "samples": 4,
+    }
+    monitor.record(0.001)
+    assert monitor.summary_ms()["samples"] == 5  # the default is always fresh
+
+
 def test_summary_before_any_sample() -> None:
     assert LoopLagMonitor().summary_ms() == {"p50": None, "p99": None, "max": None, "samples": 0}
 

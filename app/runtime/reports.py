@@ -44,7 +44,8 @@ def status(rt: Runtime) -> dict[str, Any]:
         "frame_age_ms": round((now - floor.capture_s) * 1000, 1) if floor else None,
         "pickup_age_ms": round(statistics.median(recent) * 1000, 2) if recent else None,
         "stage_ms": shared.stages.recent_ms(),
-        "loop_lag_ms": rt.loop_lag.summary_ms(),
+        # Percentiles refreshed once a second (50 lags), not on every poll.
+        "loop_lag_ms": rt.loop_lag.summary_ms(reuse_within=50),
         "pose": {
             "x_m": round(pose.x_m, 3),
             "y_m": round(pose.y_m, 3),

@@ -21,6 +21,18 @@ from app.web.viser_view import ViserView
 
 log = logging.getLogger("floornav.web")
 
+UVICORN_SETTINGS: dict[str, object] = {
+    "log_level": "warning",
+    # Through our handlers: one format, and client text in uvicorn's messages gets the
+    # same control-character escaping.
+    "log_config": None,
+    "ws_max_size": 1 << 20,
+    # The video frames are JPEG: deflating them gains nothing, and with five viewers it
+    # took a fifth of the event loop's time (py-spy, scripts/measure_streaming.py).
+    "ws_per_message_deflate": False,
+}
+"""What the daemon's uvicorn runs with, besides the app, address and lifespan."""
+
 PROJECT_STATIC = Path(__file__).resolve().parents[2] / "static"
 
 
@@ -64,12 +76,8 @@ class WebService:
                 self.app,
                 host=config.web.host,
                 port=config.web.port,
-                log_level="warning",
-                # Through our handlers: one format, and client text in uvicorn's
-                # messages gets the same control-character escaping.
-                log_config=None,
                 lifespan="on",
-                ws_max_size=1 << 20,
+                **UVICORN_SETTINGS,  # type: ignore[arg-type]
             )
         )
 

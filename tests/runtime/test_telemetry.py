@@ -22,6 +22,24 @@ def test_float_window_keeps_the_newest_in_order_and_never_grows() -> None:
     assert window.values().nbytes == 4 * 8
 
 
+def test_float_window_tail_is_the_newest_oldest_first_across_the_wrap() -> None:
+    window = FloatWindow(maxlen=5)
+    assert window.tail(3).tolist() == []
+    for value in range(1, 13):
+        window.append(float(value))
+        for n in range(0, 8):
+            expected = [float(v) for v in range(max(1, value - 4), value + 1)][-n or len(window) :]
+            assert window.tail(n).tolist() == (expected if n else []), (value, n)
+
+
+def test_stage_clock_recent_medians() -> None:
+    clock = StageClock(maxlen=4)
+    for ms in (100, 1, 2, 3, 4, 50):
+        clock.add("mapping", ms / 1000)
+    assert clock.recent_ms(3) == {"mapping": 4.0}  # median of 3, 4, 50
+    assert clock.recent_ms(4) == {"mapping": 3.5}  # the window holds 4: 2, 3, 4, 50
+
+
 def test_stage_clock_percentiles_over_the_window() -> None:
     clock = StageClock(maxlen=1000)
     for ms in range(1, 1001):

@@ -16,6 +16,7 @@ from websockets.asyncio.client import ClientConnection, connect
 
 from app.messages import FloorMsg
 from app.web import create_app
+from app.web.server import UVICORN_SETTINGS
 
 from .conftest import TOKEN, serve_in_thread
 from .fakes import FakeService, floor_msg
@@ -40,7 +41,7 @@ class LiveServer:
 def live_server() -> Iterator[LiveServer]:
     service = FakeService()
     app = create_app(service, token=TOKEN, static_dir=None)
-    served = serve_in_thread(app)
+    served = serve_in_thread(app, **UVICORN_SETTINGS)  # as the daemon serves
     try:
         yield LiveServer(service, served.port, served.loop)
     finally:
@@ -132,3 +133,18 @@ async def test_a_slow_video_client_does_not_delay_a_fast_one(live_server: LiveSe
     assert fast.seqs == sorted(fast.seqs) and slow_acked.seqs == sorted(slow_acked.seqs)
     # With acks the slow client skips to the newest frame each time.
     assert all(b - a > 1 for a, b in zip(slow_acked.seqs[1:], slow_acked.seqs[2:], strict=False))
+
+
+async def test_video_is_sent_uncompressed_even_to_a_client_offering_deflate(
+    live_server: LiveServer,
+) -> None:
+    """JPEG does not deflate: compressing every frame for every viewer only cost the
+    event loop time. The client below offers permessage-deflate, as browsers do."""
+    live_server.publish(floor_msg(1, width=64, height=48))
+    url = f"ws://127.0.0.1:{live_server.port}/ws/video"
+    async with connect(url, compression="deflate", close_timeout=0.5) as socket:
+        assert socket.response is not None
+        assert "Sec-WebSocket-Extensions" not in socket.response.headers
+        header = json.loads(await asyncio.wait_for(socket.recv(), timeout=5))
+        jpeg = await asyncio.wait_for(socket.recv(), timeout=5)
+    assert isinstance(jpeg, bytes) and len(jpeg) == header["bytes"]
