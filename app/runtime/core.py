@@ -152,6 +152,7 @@ class Runtime:
         self._service_tasks: list[asyncio.Task[None]] = []
         self._group_tasks: list[asyncio.Task[None]] = []
         self._recanceller: asyncio.Task[None] | None = None
+        self._estop_sends: set[asyncio.Task[None]] = set()
 
     # -- what readers see (the web's `RobotService`) ---------------------------------------
 
@@ -287,6 +288,31 @@ class Runtime:
         shared.autonomous = False
         self._update_state(f"e-stop from {source}")
         shared.wake_drive.set()
+        self._send_stop_now()
+
+    def _send_stop_now(self) -> None:
+        """STOP to the Uno from here, not on the drive stage's next turn: that stage may
+        be waiting up to an ACK timeout for the previous command's ACK (under load the
+        e-stop reached the wire 40-50 ms after `estop()`). The link writes the STOP
+        beside any command in flight and drops a DRIVE queued before it."""
+        link = self.shared.link
+        if link is None or link.state is not DeviceState.CONNECTED:
+            return  # nothing to send to (the firmware deadman has the motors)
+        try:
+            loop = asyncio.get_running_loop()
+        except RuntimeError:
+            return  # not on the loop: the drive stage sends it on its next turn
+        task = loop.create_task(self._stop_motors_logged(link), name="estop-stop")
+        self._estop_sends.add(task)
+        task.add_done_callback(self._estop_sends.discard)
+
+    @staticmethod
+    async def _stop_motors_logged(link: UnoLink) -> None:
+        try:
+            await link.stop_motors()
+        except (LinkError, OSError) as exc:
+            # The drive stage repeats the zero command; the deadman is below both.
+            log.warning("e-stop STOP not acknowledged: %s", exc, extra={"event": "send_error"})
 
     def reset_estop(self) -> bool:
         was = self.shared.mux.reset_estop()

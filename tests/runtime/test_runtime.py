@@ -77,6 +77,32 @@ async def test_estop_latches_and_refuses_until_reset() -> None:
         assert rt.mux.estops == 1
 
 
+async def test_estop_reaches_the_uno_while_the_drive_stage_waits_on_a_command() -> None:
+    """The drive stage can be inside ``link.drive()`` waiting for an ACK (up to the ACK
+    timeout, longer on a loaded machine); the e-stop's STOP must not wait its turn."""
+    async with running() as (rt, _):
+        sim = rt.devices.sim
+        link = rt.link
+        assert sim is not None and sim.uno is not None and link is not None
+        real_drive = link.drive
+        stuck = asyncio.Event()
+
+        async def drive_then_hang(left_pwm: int, right_pwm: int) -> None:
+            await real_drive(left_pwm, right_pwm)
+            if (left_pwm, right_pwm) != (0, 0):
+                stuck.set()
+                await asyncio.Event().wait()  # as if its ACK never came
+
+        link.drive = drive_then_hang  # type: ignore[method-assign]
+        await rt.start()
+        await wait_for(stuck.is_set, 5.0, "a drive command")
+        await wait_for(lambda: sim.uno.pwm != (0, 0), 2.0, "the motors to turn")
+        rt.estop("test")
+        # The heartbeat keeps re-sending the last DRIVE: only the e-stop's STOP zeroes it.
+        await wait_for(lambda: sim.uno.pwm == (0, 0), 1.0, "the e-stop's STOP")
+        assert rt.state is State.ESTOPPED
+
+
 async def test_teleop_overrides_then_times_out_to_an_explicit_zero() -> None:
     async with running() as (rt, _):
         sim = rt.devices.sim
