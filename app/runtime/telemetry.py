@@ -69,7 +69,8 @@ class FloatWindow:
         return iter(self.values().tolist())
 
     def tail(self, n: int) -> NDArray[np.float64]:
-        """The newest ``min(n, len(self))`` samples as an array, oldest first."""
+        """The newest ``min(n, len(self))`` samples as an array, oldest first (a view of
+        the ring when they do not wrap: copy it to keep it past the next `append`)."""
         count = min(n, len(self))
         end = self._appended % self.maxlen or (self.maxlen if self._appended else 0)
         if count <= end:
