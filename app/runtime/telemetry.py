@@ -3,10 +3,9 @@ memory, kept in bounded windows so hours of running cost no more than minutes.""
 
 from __future__ import annotations
 
-import itertools
 import math
 import statistics
-from collections.abc import Iterator, Reversible
+from collections.abc import Iterator
 from dataclasses import dataclass
 from typing import Any
 
@@ -83,9 +82,10 @@ class FloatWindow:
             yield float(data[i % maxlen])
 
 
-def newest(values: Reversible[float], n: int) -> list[float]:
-    """The last ``n`` values without copying the whole (100k-long) window."""
-    return list(itertools.islice(reversed(values), n))
+def newest(values: FloatWindow, n: int) -> list[float]:
+    """The last ``n`` values, newest first, without copying the whole (100k-long) window."""
+    out: list[float] = values.tail(n)[::-1].tolist()
+    return out
 
 
 class StageClock:
@@ -111,7 +111,7 @@ class StageClock:
         out = {}
         for name, values in self.samples.items():
             # statistics on a short list: np.median's overhead is ~10x on 30 values.
-            tail = values.tail(n).tolist()
+            tail = newest(values, n)
             if tail:
                 out[name] = round(statistics.median(tail) * 1000, 2)
         return out
