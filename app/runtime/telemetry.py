@@ -59,10 +59,7 @@ class FloatWindow:
 
     def values(self) -> NDArray[np.float64]:
         """A copy, oldest first."""
-        start = self._appended % self.maxlen
-        if self._appended <= self.maxlen:
-            return self._data[: self._appended].copy()
-        return np.concatenate((self._data[start:], self._data[:start]))
+        return self.tail(len(self)).copy()
 
     def __iter__(self) -> Iterator[float]:
         return iter(self.values().tolist())
