@@ -42,8 +42,8 @@ class FloatWindow:
     30 fps samples costs no more memory than the first minute (a deque of Python floats
     grew the daemon by ~20 MB over an hour).
 
-    Appending is O(1); iteration is oldest first, ``reversed()`` newest first and lazy
-    (`newest` and the metrics read only the few newest)."""
+    Appending is O(1); iteration is oldest first; `tail` reads the newest few as one
+    slice (`newest`, the stage medians and the metrics' histograms)."""
 
     def __init__(self, maxlen: int = 100_000) -> None:
         self.maxlen = maxlen
@@ -72,11 +72,6 @@ class FloatWindow:
         if count <= end:
             return self._data[end - count : end]
         return np.concatenate((self._data[self.maxlen - (count - end) :], self._data[:end]))
-
-    def __reversed__(self) -> Iterator[float]:
-        data, maxlen = self._data, self.maxlen
-        for i in range(self._appended - 1, self._appended - 1 - len(self), -1):
-            yield float(data[i % maxlen])
 
 
 def newest(values: FloatWindow, n: int) -> list[float]:

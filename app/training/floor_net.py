@@ -34,6 +34,9 @@ WEIGHT_DECAY = 1e-4
 NEAR_NONFLOOR_WEIGHT = 3.0
 """Non-floor pixels in the bottom 40 % weigh 3x: called floor, they are what the robot hits."""
 STORE_SCALE = 2
+COPY_PASTE_PROBABILITY = 0.5
+"""Share of training views that get another image's non-floor pasted onto their floor:
+an obstacle standing in front of the robot, often right in the safe zone."""
 """Training images are kept at twice the input size so crops stay sharp."""
 
 
@@ -100,6 +103,44 @@ def augment(
         pixels = cv2.GaussianBlur(pixels, (0, 0), rng.uniform(0.5, 1.5))
     pixels += rng.normal(0.0, rng.uniform(0.0, 6.0), size=pixels.shape)
     return np.clip(pixels, 0, 255).astype(np.uint8), floor
+
+
+def paste_obstacle(
+    bgr: NDArray[np.uint8],
+    floor: NDArray[np.uint8],
+    donor_bgr: NDArray[np.uint8],
+    donor_floor: NDArray[np.uint8],
+    rng: np.random.Generator,
+) -> tuple[NDArray[np.uint8], NDArray[np.uint8]]:
+    """Paste the non-floor pixels of a random window of the donor view onto ``bgr``,
+    standing with its bottom in the lower part of the frame; those pixels become
+    not-floor. Returns new arrays (the inputs are unchanged); unchanged copies if the
+    window held too little non-floor."""
+    height, width = floor.shape
+    win_w = max(4, round(width * rng.uniform(0.15, 0.45)))
+    win_h = max(4, round(height * rng.uniform(0.25, 0.7)))
+    x0 = int(rng.integers(0, width - win_w + 1))
+    y0 = int(rng.integers(0, height - win_h + 1))
+    piece = donor_floor[y0 : y0 + win_h, x0 : x0 + win_w] == 0
+    out_bgr, out_floor = bgr.copy(), floor.copy()
+    if piece.mean() < 0.3:
+        return out_bgr, out_floor
+    centre_x = rng.uniform(0.2, 0.8) * width
+    bottom = rng.uniform(0.6, 1.0) * height
+    tx0 = round(centre_x - win_w / 2)
+    ty0 = round(bottom - win_h)
+    # Clip the window to the frame.
+    sx0, sy0 = max(0, -tx0), max(0, -ty0)
+    sx1 = min(win_w, width - tx0)
+    sy1 = min(win_h, height - ty0)
+    if sx1 <= sx0 or sy1 <= sy0:
+        return out_bgr, out_floor
+    piece = piece[sy0:sy1, sx0:sx1]
+    source = donor_bgr[y0 + sy0 : y0 + sy1, x0 + sx0 : x0 + sx1]
+    target = (slice(ty0 + sy0, ty0 + sy1), slice(tx0 + sx0, tx0 + sx1))
+    out_bgr[target][piece] = source[piece]
+    out_floor[target][piece] = 0
+    return out_bgr, out_floor
 
 
 def input_zone_mask(zone: Trapezoid) -> NDArray[np.bool_]:
@@ -178,6 +219,11 @@ def train(
             inputs, targets = [], []
             for index in batch:
                 bgr, floor = augment(images[index], rng)
+                if len(images) > 1 and rng.random() < COPY_PASTE_PROBABILITY:
+                    donor = int(rng.integers(0, len(images) - 1))
+                    donor += donor >= index
+                    donor_bgr, donor_floor = augment(images[donor], rng)
+                    bgr, floor = paste_obstacle(bgr, floor, donor_bgr, donor_floor, rng)
                 inputs.append(network_input(bgr, zone_mask)[0])
                 small = cv2.resize(
                     floor.astype(np.float32), (out_w, out_h), interpolation=cv2.INTER_AREA

@@ -9,7 +9,6 @@ process-global one, so two apps (tests) do not collide.
 
 from __future__ import annotations
 
-import itertools
 import math
 import time
 from collections.abc import Iterable, Sequence
@@ -74,7 +73,7 @@ class CumulativeHistogram:
         self.seen = window_total
         if new <= 0:
             return
-        values = np.fromiter(itertools.islice(reversed(window), new), dtype=np.float64, count=new)
+        values = window.tail(new)
         # side="left": a value equal to a bound belongs to that bucket (le semantics).
         index = np.searchsorted(np.asarray(self.bounds), values, side="left")
         self.counts += np.bincount(index, minlength=len(self.counts))

@@ -18,6 +18,7 @@ from app.training.floor_net import (  # noqa: E402
     augment,
     export_onnx,
     input_zone_mask,
+    paste_obstacle,
     predict_probability,
     prepare,
     train,
@@ -46,6 +47,46 @@ def test_augmented_views_keep_the_bottom_edge_and_the_labels_aligned() -> None:
         assert floor.shape == (INPUT_HEIGHT_PX, INPUT_WIDTH_PX)
         assert floor[-1].all()  # the crop keeps the robot's own floor
         assert set(np.unique(floor)) <= {0, 1}
+
+
+def test_a_pasted_obstacle_is_the_donors_non_floor_and_is_labelled_not_floor() -> None:
+    height, width = INPUT_HEIGHT_PX, INPUT_WIDTH_PX
+    floor_view = np.full((height, width, 3), 10, np.uint8)
+    floor_label = np.ones((height, width), np.uint8)
+    donor = np.empty((height, width, 3), np.uint8)
+    donor[..., 0] = np.arange(width, dtype=np.uint8)[None, :]  # where each pixel came from
+    donor[..., 1] = np.arange(height, dtype=np.uint8)[:, None]
+    donor[..., 2] = 200
+    donor_floor = np.zeros((height, width), np.uint8)
+    donor_floor[:, : width // 2] = 1  # the donor's left half is floor: never pasted
+    pasted_any = False
+    for seed in range(40):
+        bgr, floor = paste_obstacle(
+            floor_view, floor_label, donor, donor_floor, np.random.default_rng(seed)
+        )
+        changed = (bgr != floor_view).any(axis=2)
+        # Exactly the pasted pixels lose their floor label, and every one of them is a
+        # donor pixel from the donor's not-floor half.
+        np.testing.assert_array_equal(floor == 0, changed)
+        assert (bgr[changed][:, 2] == 200).all()
+        assert (bgr[changed][:, 0] >= width // 2).all()
+        if changed.any():
+            pasted_any = True
+            rows = np.nonzero(changed.any(axis=1))[0]
+            assert rows.max() >= 0.6 * height - 1  # it stands in the lower part of the view
+    assert pasted_any
+    # The inputs are unchanged.
+    assert (floor_view == 10).all() and floor_label.all()
+
+
+def test_nothing_is_pasted_from_a_window_that_is_mostly_floor() -> None:
+    view = np.zeros((INPUT_HEIGHT_PX, INPUT_WIDTH_PX, 3), np.uint8)
+    label = np.ones(view.shape[:2], np.uint8)
+    bgr, floor = paste_obstacle(
+        view, label, np.full_like(view, 99), np.ones_like(label), np.random.default_rng(0)
+    )
+    np.testing.assert_array_equal(bgr, view)
+    np.testing.assert_array_equal(floor, label)
 
 
 def test_the_exported_onnx_model_gives_what_torch_gives(tmp_path: Path) -> None:

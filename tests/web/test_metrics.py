@@ -10,6 +10,7 @@ from prometheus_client import REGISTRY, generate_latest
 from prometheus_client.parser import text_string_to_metric_families
 
 from app.messages import State
+from app.runtime.telemetry import FloatWindow
 from app.web import create_app
 from app.web.metrics import CumulativeHistogram, build_registry
 
@@ -89,9 +90,7 @@ def test_web_metrics_and_no_global_registry(client: TestClient, service: FakeSer
 
 
 def test_histogram_survives_a_window_that_dropped_samples() -> None:
-    from collections import deque
-
-    window: deque[float] = deque(maxlen=4)
+    window = FloatWindow(maxlen=4)
     histogram = CumulativeHistogram((0.01, 0.1))
     total = 0
     for value in (0.005, 0.05, 0.5):
