@@ -23,7 +23,9 @@ from app.perception.floor_net import (
     INPUT_WIDTH_PX,
     OUTPUT_HEIGHT_PX,
     OUTPUT_WIDTH_PX,
+    blob_for_reference,
     network_input,
+    scaled_lab,
 )
 from app.perception.safe_zone import Trapezoid, safe_zone_mask
 
@@ -34,10 +36,21 @@ WEIGHT_DECAY = 1e-4
 NEAR_NONFLOOR_WEIGHT = 3.0
 """Non-floor pixels in the bottom 40 % weigh 3x: called floor, they are what the robot hits."""
 STORE_SCALE = 2
+"""Training images are kept at twice the input size so crops stay sharp."""
 COPY_PASTE_PROBABILITY = 0.5
 """Share of training views that get another image's non-floor pasted onto their floor:
 an obstacle standing in front of the robot, often right in the safe zone."""
-"""Training images are kept at twice the input size so crops stay sharp."""
+RECOLOUR_PROBABILITY = 0.5
+"""Share of training views whose far floor is recoloured as another material (a
+threshold into a tiled kitchen, a rug): floor all the same."""
+LEARNED_REFERENCE_PROBABILITY = 0.6
+"""Share of the recoloured views whose colours are taken relative to the recoloured
+material instead of the safe zone: the daemon's learned-floor pass hands the network a
+floor colour learned elsewhere, and this teaches that use (without it, whether the pass
+works was an accident of the particular weights)."""
+MIN_RECOLOUR_SHIFT = 15.0
+"""The smallest Lab distance between a floor and its recoloured material: a new
+material, not a shade of the old one."""
 
 
 def _torch() -> Any:
@@ -143,6 +156,52 @@ def paste_obstacle(
     return out_bgr, out_floor
 
 
+def recolour_far_floor(
+    bgr: NDArray[np.uint8], floor: NDArray[np.uint8], rng: np.random.Generator
+) -> tuple[NDArray[np.uint8], NDArray[np.bool_]]:
+    """Give the floor beyond a random, slightly slanted line another material's colour
+    and contrast (the texture kept). The line leaves 20-70 % of the floor's rows beyond
+    it and stays above the safe zone (the top 75 % of the view). Returns the new view and
+    the recoloured pixels (all floor; the labels do not change); the view unchanged and
+    an empty mask if that floor is under 5 % of the view. The input is unchanged."""
+    height, width = floor.shape
+    rows, cols = np.mgrid[0:height, 0:width]
+    floor_rows = rows[floor > 0]
+    if floor_rows.size == 0:
+        return bgr.copy(), np.zeros(floor.shape, dtype=np.bool_)
+    line_row = min(float(np.quantile(floor_rows, rng.uniform(0.2, 0.7))), 0.75 * height)
+    slope = rng.uniform(-0.3, 0.3)
+    beyond = (rows < line_row + slope * (cols - width / 2)) & (rows < 0.75 * height) & (floor > 0)
+    if beyond.mean() < 0.05:
+        return bgr.copy(), np.zeros_like(beyond)
+    shift = np.zeros(3)
+    while np.linalg.norm(shift) < MIN_RECOLOUR_SHIFT:
+        shift = np.array([rng.uniform(-30, 30), rng.uniform(-25, 25), rng.uniform(-25, 25)])
+    lab = cv2.cvtColor(bgr.astype(np.float32) * (1.0 / 255.0), cv2.COLOR_BGR2Lab)
+    part = lab[beyond]
+    mean = part.mean(axis=0)
+    part = (part - mean) * rng.uniform(0.6, 1.6) + mean + shift
+    part[:, 0] = np.clip(part[:, 0], 2.0, 98.0)
+    lab[beyond] = part
+    recoloured = cv2.cvtColor(lab, cv2.COLOR_Lab2BGR)[beyond] * 255.0
+    out = bgr.copy()
+    out[beyond] = np.clip(np.rint(recoloured), 0, 255).astype(np.uint8)
+    return out, beyond
+
+
+def training_input(
+    bgr: NDArray[np.uint8],
+    zone_mask: NDArray[np.bool_],
+    reference_pixels: NDArray[np.bool_] | None,
+) -> NDArray[np.float32]:
+    """The network's input for one view: colours relative to the safe zone, or to the
+    median colour of ``reference_pixels`` (a floor material other than the zone's)."""
+    if reference_pixels is None or not reference_pixels.any():
+        return network_input(bgr, zone_mask)
+    lab_scaled = scaled_lab(bgr)
+    return blob_for_reference(lab_scaled, np.median(lab_scaled[reference_pixels], axis=0))
+
+
 def input_zone_mask(zone: Trapezoid) -> NDArray[np.bool_]:
     return safe_zone_mask((INPUT_HEIGHT_PX, INPUT_WIDTH_PX), zone)
 
@@ -219,12 +278,19 @@ def train(
             inputs, targets = [], []
             for index in batch:
                 bgr, floor = augment(images[index], rng)
+                reference_pixels = None
+                if rng.random() < RECOLOUR_PROBABILITY:
+                    bgr, recoloured = recolour_far_floor(bgr, floor, rng)
+                    if rng.random() < LEARNED_REFERENCE_PROBABILITY:
+                        reference_pixels = recoloured
                 if len(images) > 1 and rng.random() < COPY_PASTE_PROBABILITY:
                     donor = int(rng.integers(0, len(images) - 1))
                     donor += donor >= index
                     donor_bgr, donor_floor = augment(images[donor], rng)
                     bgr, floor = paste_obstacle(bgr, floor, donor_bgr, donor_floor, rng)
-                inputs.append(network_input(bgr, zone_mask)[0])
+                if reference_pixels is not None:
+                    reference_pixels = reference_pixels & (floor > 0)
+                inputs.append(training_input(bgr, zone_mask, reference_pixels)[0])
                 small = cv2.resize(
                     floor.astype(np.float32), (out_w, out_h), interpolation=cv2.INTER_AREA
                 )

@@ -4,6 +4,7 @@ from __future__ import annotations
 
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -21,7 +22,9 @@ from app.training.floor_net import (  # noqa: E402
     paste_obstacle,
     predict_probability,
     prepare,
+    recolour_far_floor,
     train,
+    training_input,
 )
 
 ZONE = trapezoid_from_config(PerceptionConfig().safe_zone)
@@ -77,6 +80,52 @@ def test_a_pasted_obstacle_is_the_donors_non_floor_and_is_labelled_not_floor() -
     assert pasted_any
     # The inputs are unchanged.
     assert (floor_view == 10).all() and floor_label.all()
+
+
+def test_recolouring_changes_only_far_floor_into_another_material() -> None:
+    height, width = INPUT_HEIGHT_PX, INPUT_WIDTH_PX
+    rng = np.random.default_rng(3)
+    view = rng.integers(90, 110, (height, width, 3)).astype(np.uint8)  # a textured floor
+    floor = np.zeros((height, width), np.uint8)
+    floor[height // 3 :] = 1  # wall above, floor below
+    view[: height // 3] = (30, 160, 200)
+    recoloured_any = False
+    for seed in range(20):
+        out, recoloured = recolour_far_floor(view, floor, np.random.default_rng(seed))
+        changed = (out != view).any(axis=2)
+        assert not (changed & ~recoloured).any()  # nothing else moves
+        assert not (recoloured & (floor == 0)).any()  # only floor is recoloured
+        assert not recoloured[round(0.75 * height) :].any()  # never the safe zone
+        if recoloured.any():
+            recoloured_any = True
+            lab_before = cv2.cvtColor(view, cv2.COLOR_BGR2Lab).astype(float)[recoloured]
+            lab_after = cv2.cvtColor(out, cv2.COLOR_BGR2Lab).astype(float)[recoloured]
+            assert np.linalg.norm(lab_after.mean(axis=0) - lab_before.mean(axis=0)) >= 8
+    assert recoloured_any
+    assert (view[: height // 3] == (30, 160, 200)).all()  # the input is unchanged
+
+
+def test_no_floor_or_too_little_far_floor_is_left_as_it_is() -> None:
+    view = np.full((INPUT_HEIGHT_PX, INPUT_WIDTH_PX, 3), 50, np.uint8)
+    for floor in (np.zeros(view.shape[:2], np.uint8), np.ones(view.shape[:2], np.uint8)):
+        floor[:-4] = 0  # at most the bottom rows: under 5 % beyond any line
+        out, recoloured = recolour_far_floor(view, floor, np.random.default_rng(0))
+        np.testing.assert_array_equal(out, view)
+        assert not recoloured.any()
+
+
+def test_a_training_view_can_take_its_colours_relative_to_another_floor() -> None:
+    view = np.zeros((INPUT_HEIGHT_PX, INPUT_WIDTH_PX, 3), np.uint8)
+    view[: INPUT_HEIGHT_PX // 2] = (40, 120, 200)  # the far material
+    view[INPUT_HEIGHT_PX // 2 :] = (90, 90, 90)  # the near one, under the safe zone
+    far = np.zeros(view.shape[:2], bool)
+    far[: INPUT_HEIGHT_PX // 2] = True
+    zone = input_zone_mask(ZONE)
+    np.testing.assert_array_equal(training_input(view, zone, None), network_input(view, zone))
+    relative = training_input(view, zone, far)
+    np.testing.assert_array_equal(relative[0, :3], network_input(view, zone)[0, :3])
+    np.testing.assert_allclose(relative[0, 3:, far], 0.0, atol=1e-6)  # the reference's own colour
+    assert np.abs(relative[0, 3:, ~far]).max() > 0.1
 
 
 def test_nothing_is_pasted_from_a_window_that_is_mostly_floor() -> None:
