@@ -13,6 +13,7 @@ import time
 import tty
 from collections.abc import Iterator
 from pathlib import Path
+from typing import Any
 
 import pytest
 
@@ -285,8 +286,20 @@ def test_wrong_firmware_banner() -> None:
             host.close()
 
 
+def _popen_with_ctrl_c(args: list[str], **kwargs: Any) -> subprocess.Popen[str]:
+    """Start ``args`` with SIGINT at its default, as a terminal's Ctrl-C finds it. A
+    parent that ignores SIGINT (pytest started with ``&`` from a script) hands the
+    ignore down through exec, and the child would never see the signal; a handled
+    signal is reset to the default on exec instead."""
+    previous = signal.signal(signal.SIGINT, signal.default_int_handler)
+    try:
+        return subprocess.Popen(args, **kwargs)
+    finally:
+        signal.signal(signal.SIGINT, previous)
+
+
 def test_cli_prints_the_port_and_stops_on_ctrl_c() -> None:
-    with subprocess.Popen(
+    with _popen_with_ctrl_c(
         [sys.executable, "-m", "app.sim.sim_uno"],
         cwd=PROJECT_ROOT,
         stdout=subprocess.PIPE,
