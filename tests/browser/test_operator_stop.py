@@ -742,7 +742,12 @@ def test_stop_reason_blocked_by_clearance_while_driving_by_key(
             expect(line).to_contain_text(re.compile(r"blocked: \d+\.\d\d m ahead"), timeout=5_000)
             expect(line).to_contain_text(CLOCK)
             assert rig.status()["teleop_driver"] == page.evaluate("window.floornav.me")
-            assert uno_pwm(rig) == (0, 0), "forward motion should be cut"
+            # The line and the Uno's zero are two paths: the status says "blocked" on the
+            # tick the gate cuts forward motion, the DRIVE 0/0 reaches the simulated Uno's
+            # process and its report comes back after. Under load (CI, once) the read came
+            # first: teleop had driven on a map too old for the clearance layer to judge,
+            # and the zero's first DRIVE went unACKed. So: cut within a bound, not instantly.
+            wait_for(lambda: uno_pwm(rig) == (0, 0), 2.0, "forward motion cut at the Uno")
             no_fault_none(page)
             assert save_screenshot(page, screenshots / "stop-blocked.png") < MAX_BYTES
         finally:
