@@ -125,9 +125,17 @@ class SafetyGate:
         safety = shared.config.safety
         problem = None
         if out.twist.v_m_s > 0:
+            # Forward motion needs a map fresh enough to say what is ahead, whoever
+            # commands it: an operator driving on a stalled perception drives blind.
             map_msg = shared.maps.peek()
-            fresh = map_msg is not None and map_msg.age_s(now) <= safety.perception_max_age_s
-            if fresh and map_msg is not None and map_msg.clearance_ahead_m < safety.min_clearance_m:
+            if map_msg is None:
+                problem = "clearance unknown: no map yet"
+            elif map_msg.age_s(now) > safety.perception_max_age_s:
+                problem = (
+                    f"clearance unknown: map {map_msg.age_s(now) * 1000:.0f} ms old "
+                    f"(> {safety.perception_max_age_s * 1000:.0f} ms)"
+                )
+            elif map_msg.clearance_ahead_m < safety.min_clearance_m:
                 problem = (
                     f"clearance {map_msg.clearance_ahead_m:.2f} m ahead < "
                     f"{safety.min_clearance_m:.2f} m"

@@ -140,6 +140,49 @@ class StallingSegmenter:
         return self.inner.segment(image)
 
 
+async def test_teleop_forward_needs_a_fresh_map_turning_and_reversing_do_not() -> None:
+    made: list[StallingSegmenter] = []
+
+    def factory(config: PerceptionConfig) -> StallingSegmenter:
+        made.append(StallingSegmenter(config))
+        return made[-1]
+
+    # No clearance threshold: what holds the robot back here is the map's age alone.
+    config = sim_config(safety={"min_clearance_m": 0.0, "min_clearance_floor_m": 0.0})
+    async with running(config, segmenter_factory=factory) as (rt, _):
+        sim = rt.devices.sim
+        assert sim is not None and sim.uno is not None
+        uno = sim.uno
+
+        async def teleop_until(v: float, omega: float, ok: Callable[[], bool], what: str) -> None:
+            deadline = time.monotonic() + 5.0
+            while not ok():
+                assert time.monotonic() < deadline, f"timed out waiting for {what}"
+                rt.teleop("t", v, omega)
+                await asyncio.sleep(0.05)
+
+        assert rt.state is State.IDLE, "an operator driving, not autonomy"
+        await teleop_until(0.2, 0.0, lambda: uno.pwm[0] > 0 and uno.pwm[1] > 0, "forward")
+        made[0].stall.set()
+        await teleop_until(0.2, 0.0, lambda: uno.pwm == (0, 0), "the blind forward stop")
+        status = rt.status()
+        assert status["stop_cause"] == "clearance"
+        assert status["stop_reason"].startswith("clearance unknown: map ")
+        assert status["stop_reason"].endswith("ms old (> 500 ms): no forward motion")
+        for _ in range(5):  # held as long as the map stays old
+            rt.teleop("t", 0.2, 0.0)
+            await asyncio.sleep(0.05)
+            assert uno.pwm == (0, 0)
+        # Turning in place and backing away stay possible on a stalled perception.
+        await teleop_until(0.0, 1.0, lambda: uno.pwm[0] * uno.pwm[1] < 0, "turning")
+        await teleop_until(-0.1, 0.0, lambda: uno.pwm[0] < 0 and uno.pwm[1] < 0, "reversing")
+
+        made[0].stall.clear()
+        await teleop_until(0.2, 0.0, lambda: uno.pwm[0] > 0 and uno.pwm[1] > 0, "forward again")
+        assert rt.status()["stop_reason"] is None
+        rt.release_teleop("t")
+
+
 async def test_stale_perception_stops_the_robot_and_resumes_once_fresh_for_a_second() -> None:
     made: list[StallingSegmenter] = []
 
