@@ -404,6 +404,7 @@ def find_frontiers(
     *,
     robot_heading_rad: float | None = None,
     probe_cells: NDArray[np.bool_] | None = None,
+    seam_cells: NDArray[np.bool_] | None = None,
 ) -> FrontierSearch:
     """Frontier clusters of a classified grid and the goal to explore next.
 
@@ -417,6 +418,10 @@ def find_frontiers(
     robot_heading_rad : the robot's heading in the world frame, for the turn penalty.
     probe_cells : (rows, cols) bool, occupied cells whose edge may be probed when no
         frontier is reachable (module docstring); None: no probes.
+    seam_cells : (rows, cols) bool, occupied cells a seam probe may cross; None: the
+        ``probe_cells``. (An edge probe keeps clear of what stands a margin around it, to
+        spare the foot of a wall; a seam probe needs only to keep off what stands, or it
+        could never cross a threshold between a door's standing jambs.)
 
     Returns
     -------
@@ -495,7 +500,7 @@ def find_frontiers(
             probe = _barrier_probe_goal(
                 cells,
                 grid,
-                probe_cells,
+                probe_cells if seam_cells is None else seam_cells,
                 clusters,
                 (row, col),
                 traversable,

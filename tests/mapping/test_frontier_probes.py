@@ -121,3 +121,18 @@ def test_no_seam_probe_through_a_thick_band_a_standing_one_or_where_the_robot_st
     assert find_frontiers(seam(), GRID, ROBOT, PARAMS, probe_cells=standing).goal is None
     at_the_seam = (2.15, 0.05)  # cell (8, 14): the look was had from here
     assert find_frontiers(seam(), GRID, at_the_seam, PARAMS, probe_cells=probe_all).goal is None
+
+
+def test_a_threshold_between_standing_jambs_is_crossed_where_nothing_stands() -> None:
+    cells = seam()
+    jambs = np.zeros(GRID.shape, bool)
+    jambs[10, 1:11] = jambs[10, 19:29] = True  # the doorway is columns 11-18
+    # Edge probes keep a margin (here three cells) around what stands: the whole
+    # threshold lies within it.
+    probe_cells = np.ones(GRID.shape, bool)
+    probe_cells[7:14, :] = False
+    search = find_frontiers(cells, GRID, ROBOT, PARAMS, probe_cells=probe_cells)
+    assert search.goal is None
+    search = find_frontiers(cells, GRID, ROBOT, PARAMS, probe_cells=probe_cells, seam_cells=~jambs)
+    assert search.goal is not None and search.goal.probe
+    assert search.goal.cell == (8, 14)
