@@ -45,8 +45,8 @@ its colour learned), a standing one is marked so, and the caller leaves it out o
 robot has looked across) has free floor behind it, not unknown, so no edge probe picks
 it, while the frontiers beyond stay unreachable. With no edge probe either, the search
 looks for the thinnest crossing: the cheapest path to a cell of an unreachable cluster,
-where probe cells cost `BARRIER_STEP_COST` and free cells too near an obstacle
-`INFLATED_STEP_COST` per metre. If that path crosses at most `MAX_BARRIER_M` of
+where probe cells cost `SEAM_STEP_COST` and free cells too near an obstacle
+`INFLATED_STEP_COST` per metre. If that path crosses at most `MAX_SEAM_M` of
 occupied cells, the goal is its last drivable cell before the edge (`probe` True).
 """
 
@@ -497,7 +497,7 @@ def find_frontiers(
             else _probe_goal(cells, grid, probe_cells, distance, parent, params)
         )
         if probe is None and probe_cells is not None:
-            probe = _barrier_probe_goal(
+            probe = _seam_probe_goal(
                 cells,
                 grid,
                 probe_cells if seam_cells is None else seam_cells,
@@ -580,20 +580,20 @@ def _probe_goal(
     )
 
 
-BARRIER_STEP_COST = 10.0
-"""`_barrier_probe_goal`: a metre across probe-able occupied cells weighs as much as ten
+SEAM_STEP_COST = 10.0
+"""`_seam_probe_goal`: a metre across occupied cells it may cross weighs as much as ten
 metres of floor, so the search crosses the thinnest edge it can."""
 INFLATED_STEP_COST = 2.0
-"""`_barrier_probe_goal`: a metre of free cells too near an obstacle to drive on."""
-MAX_BARRIER_M = 0.4
-"""`_barrier_probe_goal`: thicker edges are not taken for a seam (a wall the camera saw
+"""`_seam_probe_goal`: a metre of free cells too near an obstacle to drive on."""
+MAX_SEAM_M = 0.4
+"""`_seam_probe_goal`: thicker edges are not taken for a seam (a wall the camera saw
 from one side is rarely this thin with free floor behind it)."""
 
 
-def _barrier_probe_goal(
+def _seam_probe_goal(
     cells: NDArray[np.int8],
     grid: GroundGrid,
-    probe_cells: NDArray[np.bool_],
+    seam_cells: NDArray[np.bool_],
     clusters: list[FrontierCluster],
     start_cell: tuple[int, int],
     traversable: NDArray[np.bool_],
@@ -606,9 +606,9 @@ def _barrier_probe_goal(
     A seam the colour method calls an edge (a threshold, a rug's border) seen from
     both sides leaves free floor and its frontiers behind a band of occupied cells; the
     edge probe (unknown behind) never picks it. Search from the robot's cell, crossing
-    probe-able occupied cells at `BARRIER_STEP_COST` and free cells too near obstacles
+    ``seam_cells`` that are occupied at `SEAM_STEP_COST` and free cells too near obstacles
     at `INFLATED_STEP_COST`, to the cheapest cell of an unreachable frontier cluster; if
-    that path crosses at most `MAX_BARRIER_M` of occupied cells, the goal is its last
+    that path crosses at most `MAX_SEAM_M` of occupied cells, the goal is its last
     traversable cell before it leaves the traversable floor.
     """
     unreachable = [c for c in clusters if c.representative_cell is None]
@@ -616,7 +616,7 @@ def _barrier_probe_goal(
         return None
     step_cost = np.full(cells.shape, np.inf)
     step_cost[cells == FREE] = INFLATED_STEP_COST
-    step_cost[probe_cells & (cells == OCCUPIED)] = BARRIER_STEP_COST
+    step_cost[seam_cells & (cells == OCCUPIED)] = SEAM_STEP_COST
     step_cost[traversable] = 1.0
     start = start_cell[0] * grid.cols + start_cell[1]
     soft_distance, soft_parent = _dijkstra(step_cost, start, float(grid.cell_m))
@@ -628,7 +628,7 @@ def _barrier_probe_goal(
     target = (int(targets[best, 0]), int(targets[best, 1]))
     path = trace_path(soft_parent, grid.cols, target)
     crossed_m = float((cells[path[:, 0], path[:, 1]] == OCCUPIED).sum()) * grid.cell_m
-    if crossed_m > MAX_BARRIER_M:
+    if crossed_m > MAX_SEAM_M:
         return None
     on_floor = np.isfinite(distance[path[:, 0], path[:, 1]])
     leaves = int(np.argmin(on_floor))  # the first cell off the traversable floor

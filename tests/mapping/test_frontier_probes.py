@@ -114,7 +114,7 @@ def test_the_thinnest_part_of_a_seam_is_crossed() -> None:
 
 def test_no_seam_probe_through_a_thick_band_a_standing_one_or_where_the_robot_stands() -> None:
     probe_all = np.ones(GRID.shape, bool)
-    thick = seam(thickness_cells=5)  # 0.5 m: more than MAX_BARRIER_M
+    thick = seam(thickness_cells=5)  # 0.5 m: more than MAX_SEAM_M
     assert find_frontiers(thick, GRID, ROBOT, PARAMS, probe_cells=probe_all).goal is None
     standing = probe_all.copy()
     standing[10, :] = False  # parallax saw the band stand
