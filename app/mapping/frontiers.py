@@ -40,14 +40,6 @@ nearest by path within ``inflation_radius_m`` + two cells of a target. Driving s
 at it gives the motion-parallax test its baseline: a flat edge becomes known floor (and
 its colour learned), a standing one is marked so, and the caller leaves it out of
 ``probe_cells`` from then on. The goal's ``probe`` is True.
-
-**Seam probes.** The same edge seen from both sides (a threshold between two rooms the
-robot has looked across) has free floor behind it, not unknown, so no edge probe picks
-it, while the frontiers beyond stay unreachable. With no edge probe either, the search
-looks for the thinnest crossing: the cheapest path to a cell of an unreachable cluster,
-where probe cells cost `SEAM_STEP_COST` and free cells too near an obstacle
-`INFLATED_STEP_COST` per metre. If that path crosses at most `MAX_SEAM_M` of
-occupied cells, the goal is its last drivable cell before the edge (`probe` True).
 """
 
 from __future__ import annotations
@@ -309,11 +301,9 @@ def frontier_mask(
 
 @numba.njit(cache=True, nogil=True)
 def _dijkstra(
-    step_cost: NDArray[np.float64], start: int, cell_m: float
+    traversable: NDArray[np.bool_], start: int, cell_m: float
 ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
-    """Octile Dijkstra: entering a cell costs the move's length times its ``step_cost``
-    (inf: never entered; a diagonal move needs both cells beside it enterable)."""
-    rows, cols = step_cost.shape
+    rows, cols = traversable.shape
     dist = np.full(rows * cols, np.inf)
     parent = np.full(rows * cols, -1, dtype=np.int64)
     dist[start] = 0.0
@@ -331,17 +321,14 @@ def _dijkstra(
                 continue
             for dc in range(-1, 2):
                 nc = c + dc
-                if (dr == 0 and dc == 0) or nc < 0 or nc >= cols:
-                    continue
-                cost = step_cost[nr, nc]
-                if not math.isfinite(cost):
+                if (dr == 0 and dc == 0) or nc < 0 or nc >= cols or not traversable[nr, nc]:
                     continue
                 if dr != 0 and dc != 0:
-                    if not (math.isfinite(step_cost[r, nc]) and math.isfinite(step_cost[nr, c])):
+                    if not (traversable[r, nc] and traversable[nr, c]):
                         continue
-                    nd = d + diagonal * cost
+                    nd = d + diagonal
                 else:
-                    nd = d + cell_m * cost
+                    nd = d + cell_m
                 n_idx = nr * cols + nc
                 if nd < dist[n_idx]:
                     dist[n_idx] = nd
@@ -381,8 +368,8 @@ def path_distances(
         raise ValueError(f"start_cell: {start_cell} is outside the {rows}x{cols} raster")
     if not (math.isfinite(cell_m) and cell_m > 0):
         raise ValueError(f"cell_m: must be finite and > 0, got {cell_m}")
-    step_cost = np.where(traversable, 1.0, np.inf)
-    dist, parent = _dijkstra(step_cost, int(row * cols + col), float(cell_m))
+    grid = np.ascontiguousarray(traversable, dtype=np.bool_)
+    dist, parent = _dijkstra(grid, int(row * cols + col), float(cell_m))
     return dist, parent
 
 
@@ -404,7 +391,6 @@ def find_frontiers(
     *,
     robot_heading_rad: float | None = None,
     probe_cells: NDArray[np.bool_] | None = None,
-    seam_cells: NDArray[np.bool_] | None = None,
 ) -> FrontierSearch:
     """Frontier clusters of a classified grid and the goal to explore next.
 
@@ -418,10 +404,6 @@ def find_frontiers(
     robot_heading_rad : the robot's heading in the world frame, for the turn penalty.
     probe_cells : (rows, cols) bool, occupied cells whose edge may be probed when no
         frontier is reachable (module docstring); None: no probes.
-    seam_cells : (rows, cols) bool, occupied cells a seam probe may cross; None: the
-        ``probe_cells``. (An edge probe keeps clear of what stands a margin around it, to
-        spare the foot of a wall; a seam probe needs only to keep off what stands, or it
-        could never cross a threshold between a door's standing jambs.)
 
     Returns
     -------
@@ -496,18 +478,6 @@ def find_frontiers(
             if probe_cells is None
             else _probe_goal(cells, grid, probe_cells, distance, parent, params)
         )
-        if probe is None and probe_cells is not None:
-            probe = _seam_probe_goal(
-                cells,
-                grid,
-                probe_cells if seam_cells is None else seam_cells,
-                clusters,
-                (row, col),
-                traversable,
-                distance,
-                parent,
-                params,
-            )
         if probe is not None:
             return result(probe, "")
         return result(None, REASON_NO_REACHABLE if clusters else REASON_NO_FRONTIER)
@@ -576,76 +546,6 @@ def _probe_goal(
         path_length_m=float(distance[cell]),
         score=float(distance[cell]),
         path_cells=trace_path(parent, cols, cell),
-        probe=True,
-    )
-
-
-SEAM_STEP_COST = 10.0
-"""`_seam_probe_goal`: a metre across occupied cells it may cross weighs as much as ten
-metres of floor, so the search crosses the thinnest edge it can."""
-INFLATED_STEP_COST = 2.0
-"""`_seam_probe_goal`: a metre of free cells too near an obstacle to drive on."""
-MAX_SEAM_M = 0.4
-"""`_seam_probe_goal`: thicker edges are not taken for a seam (a wall the camera saw
-from one side is rarely this thin with free floor behind it)."""
-
-
-def _seam_probe_goal(
-    cells: NDArray[np.int8],
-    grid: GroundGrid,
-    seam_cells: NDArray[np.bool_],
-    clusters: list[FrontierCluster],
-    start_cell: tuple[int, int],
-    traversable: NDArray[np.bool_],
-    distance: NDArray[np.float64],
-    parent: NDArray[np.int64],
-    params: FrontierParams,
-) -> FrontierGoal | None:
-    """Where to look at a thin edge between the robot and free floor it cannot reach.
-
-    A seam the colour method calls an edge (a threshold, a rug's border) seen from
-    both sides leaves free floor and its frontiers behind a band of occupied cells; the
-    edge probe (unknown behind) never picks it. Search from the robot's cell, crossing
-    ``seam_cells`` that are occupied at `SEAM_STEP_COST` and free cells too near obstacles
-    at `INFLATED_STEP_COST`, to the cheapest cell of an unreachable frontier cluster; if
-    that path crosses at most `MAX_SEAM_M` of occupied cells, the goal is its last
-    traversable cell before it leaves the traversable floor.
-    """
-    unreachable = [c for c in clusters if c.representative_cell is None]
-    if not unreachable:
-        return None
-    step_cost = np.full(cells.shape, np.inf)
-    step_cost[cells == FREE] = INFLATED_STEP_COST
-    step_cost[seam_cells & (cells == OCCUPIED)] = SEAM_STEP_COST
-    step_cost[traversable] = 1.0
-    start = start_cell[0] * grid.cols + start_cell[1]
-    soft_distance, soft_parent = _dijkstra(step_cost, start, float(grid.cell_m))
-    targets = np.concatenate([c.cells for c in unreachable])
-    target_cost = soft_distance[targets[:, 0], targets[:, 1]]
-    best = int(np.argmin(target_cost))
-    if not math.isfinite(target_cost[best]):
-        return None
-    target = (int(targets[best, 0]), int(targets[best, 1]))
-    path = trace_path(soft_parent, grid.cols, target)
-    crossed_m = float((cells[path[:, 0], path[:, 1]] == OCCUPIED).sum()) * grid.cell_m
-    if crossed_m > MAX_SEAM_M:
-        return None
-    on_floor = np.isfinite(distance[path[:, 0], path[:, 1]])
-    leaves = int(np.argmin(on_floor))  # the first cell off the traversable floor
-    if leaves == 0:
-        return None
-    cell = (int(path[leaves - 1, 0]), int(path[leaves - 1, 1]))
-    # Not where the robot stands: driving there gives the parallax test no baseline.
-    if distance[cell] < params.exclude_radius_m:
-        return None
-    x, y = grid.cell_centers()
-    return FrontierGoal(
-        cluster_index=-1,
-        cell=cell,
-        xy=(float(x[cell]), float(y[cell])),
-        path_length_m=float(distance[cell]),
-        score=float(distance[cell]),
-        path_cells=trace_path(parent, grid.cols, cell),
         probe=True,
     )
 

@@ -452,22 +452,21 @@ class GroundMapper:
         cells = self.grid.classify()
         world = self.grid.world_grid
         cells[self.given_up.seen & (cells == UNKNOWN)] = FREE
-        probe_cells = seam_cells = None
+        probe_cells = None
         if self.mapping.frontier_probe_edges:
-            standing = self.memory.standing != 0
             # Parallax marks what stands beyond an edge (the wall above its foot): the
             # edge's own cells lie up to a band's width before it.
-            near_standing = inflate_obstacles(standing, PROBE_STANDING_REACH_M / world.cell_m)
+            standing = inflate_obstacles(
+                self.memory.standing != 0, PROBE_STANDING_REACH_M / world.cell_m
+            )
             # A probe given up: its edge is not looked at again.
-            probe_cells = ~(near_standing | self.given_up.no_probe)
-            seam_cells = ~(standing | self.given_up.no_probe)
+            probe_cells = ~(standing | self.given_up.no_probe)
         return find_frontiers(
             cells,
             world,
             (T_world_robot.x_m, T_world_robot.y_m),
             self.frontier_params,
             probe_cells=probe_cells,
-            seam_cells=seam_cells,
         )
 
 
