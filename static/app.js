@@ -298,7 +298,10 @@ function renderStops(s) {
   }
   if (cause === "clearance") {
     const time = last && last.cause === "clearance" ? last.t : seenSince("clearance", true);
-    const ahead = typeof s.clearance_ahead_m === "number" ? fmt(s.clearance_ahead_m, 2) + " m ahead" : "too close";
+    // A map too old to judge holds forward motion too; its distance would be stale.
+    const unknown = (s.stop_reason || "").startsWith("clearance unknown");
+    const ahead = unknown ? "clearance unknown (map too old)"
+      : typeof s.clearance_ahead_m === "number" ? fmt(s.clearance_ahead_m, 2) + " m ahead" : "too close";
     setStopLine("stop-blocked", "blocked: " + ahead, time,
       (s.stop_reason || "too little clearance") + " · turning and reversing still work");
     stoppedBy = stoppedBy || "blocked: " + ahead;

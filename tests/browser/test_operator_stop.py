@@ -25,7 +25,9 @@ from typing import Any
 import pytest
 from playwright.sync_api import Browser, CDPSession, Page, ViewportSize, expect
 
+from app.config import PerceptionConfig
 from app.hardware.protocol import Frame, MsgType, drive_payload, encode_frame
+from app.perception.pipeline import FloorResult, FloorSegmenter
 from app.runtime import CommandRefusedError
 from tests.browser.conftest import TOKEN, LiveServer
 from tests.browser.shots import MAX_BYTES, save_screenshot
@@ -767,6 +769,50 @@ def test_stop_reason_blocked_by_clearance_while_driving_by_key(
             expect(last).to_contain_text(f"last stop: {cause}")
     finally:
         rig.call(lambda: rig.runtime.update_config(config))
+
+
+class _StalledSegmenter:
+    """A perception stage that hangs: each frame takes 2 s (the map falls behind)."""
+
+    def __init__(self, config: PerceptionConfig) -> None:
+        self.inner = FloorSegmenter(config)
+
+    def segment(self, image: Any) -> FloorResult:
+        time.sleep(2.0)
+        return self.inner.segment(image)
+
+
+def test_stop_reason_blocked_while_driving_by_key_on_a_map_too_old_to_judge(
+    page: Page, rig: LiveServer
+) -> None:
+    perception = rig.runtime.perception
+    factory = perception.segmenter_factory
+
+    def stall() -> None:
+        perception.segmenter_factory = _StalledSegmenter
+        perception.rebuild_segmenter()
+
+    def resume() -> None:
+        perception.segmenter_factory = factory
+        perception.rebuild_segmenter()
+
+    open_dashboard(page, rig)
+    rig.call(stall)
+    try:
+        page.evaluate("document.activeElement && document.activeElement.blur()")
+        page.keyboard.down("ArrowUp")
+        try:
+            line = page.locator("#stop-blocked")
+            expect(line).to_contain_text("blocked: clearance unknown (map too old)", timeout=8_000)
+            expect(line).to_contain_text(re.compile(r"map \d+ ms old"))
+            expect(line).to_contain_text(CLOCK)
+            wait_for(lambda: uno_pwm(rig) == (0, 0), 2.0, "forward motion cut at the Uno")
+            no_fault_none(page)
+        finally:
+            page.keyboard.up("ArrowUp")
+    finally:
+        rig.call(resume)
+    wait_for(lambda: rig.status()["stop_cause"] is None, 10.0, "the stop to clear")
 
 
 def test_stop_reason_calibration_failed(page: Page, rig: LiveServer, screenshots: Path) -> None:
