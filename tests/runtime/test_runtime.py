@@ -9,6 +9,7 @@ import threading
 import time
 from collections.abc import Callable
 from dataclasses import replace
+from typing import TypeVar
 
 import numpy as np
 import pytest
@@ -28,6 +29,22 @@ from app.runtime import (
 )
 
 from .conftest import running, sim_config, wait_for
+
+S = TypeVar("S")
+
+
+def recording_factory(
+    make: Callable[[PerceptionConfig], S],
+) -> tuple[list[S], Callable[[PerceptionConfig], S]]:
+    """A segmenter factory for the runtime, and the list of what it made (the test
+    reaches the running segmenter through it)."""
+    made: list[S] = []
+
+    def factory(config: PerceptionConfig) -> S:
+        made.append(make(config))
+        return made[-1]
+
+    return made, factory
 
 
 def moved_m(devices: Devices, start: tuple[float, float]) -> float:
@@ -141,11 +158,7 @@ class StallingSegmenter:
 
 
 async def test_teleop_forward_needs_a_fresh_map_turning_and_reversing_do_not() -> None:
-    made: list[StallingSegmenter] = []
-
-    def factory(config: PerceptionConfig) -> StallingSegmenter:
-        made.append(StallingSegmenter(config))
-        return made[-1]
+    made, factory = recording_factory(StallingSegmenter)
 
     # No clearance threshold: what holds the robot back here is the map's age alone.
     config = sim_config(safety={"min_clearance_m": 0.0, "min_clearance_floor_m": 0.0})
@@ -184,11 +197,7 @@ async def test_teleop_forward_needs_a_fresh_map_turning_and_reversing_do_not() -
 
 
 async def test_stale_perception_stops_the_robot_and_resumes_once_fresh_for_a_second() -> None:
-    made: list[StallingSegmenter] = []
-
-    def factory(config: PerceptionConfig) -> StallingSegmenter:
-        made.append(StallingSegmenter(config))
-        return made[-1]
+    made, factory = recording_factory(StallingSegmenter)
 
     async with running(segmenter_factory=factory) as (rt, _):
         sim = rt.devices.sim
@@ -275,11 +284,7 @@ class BudgetedPassSegmenter:
 
 
 async def test_learned_floor_passes_run_at_most_once_per_period() -> None:
-    made: list[BudgetedPassSegmenter] = []
-
-    def factory(config: PerceptionConfig) -> BudgetedPassSegmenter:
-        made.append(BudgetedPassSegmenter(config))
-        return made[-1]
+    made, factory = recording_factory(BudgetedPassSegmenter)
 
     config = sim_config(perception={"learned_floor_pass_period_s": 0.25})
     async with running(config, segmenter_factory=factory) as (rt, _):
@@ -294,11 +299,7 @@ async def test_learned_floor_passes_run_at_most_once_per_period() -> None:
 
 
 async def test_a_safe_zone_that_is_not_floor_stops_forward_motion_until_it_is_again() -> None:
-    made: list[ZoneConfidenceSegmenter] = []
-
-    def factory(config: PerceptionConfig) -> ZoneConfidenceSegmenter:
-        made.append(ZoneConfidenceSegmenter(config))
-        return made[-1]
+    made, factory = recording_factory(ZoneConfidenceSegmenter)
 
     # No clearance stop: what holds the robot back here is the premise alone.
     config = sim_config(safety={"min_clearance_m": 0.0, "min_clearance_floor_m": 0.0})
