@@ -47,6 +47,22 @@ def recording_factory(
     return made, factory
 
 
+async def teleop_until(
+    rt: Runtime,
+    v_m_s: float,
+    omega_rad_s: float,
+    ok: Callable[[], bool],
+    what: str,
+    timeout_s: float = 5.0,
+) -> None:
+    """Send teleop ``(v_m_s, omega_rad_s)`` at 20 Hz, as a held key does, until ``ok``."""
+    deadline = time.monotonic() + timeout_s
+    while not ok():
+        assert time.monotonic() < deadline, f"timed out waiting for {what}"
+        rt.teleop("t", v_m_s, omega_rad_s)
+        await asyncio.sleep(0.05)
+
+
 def moved_m(devices: Devices, start: tuple[float, float]) -> float:
     assert devices.sim is not None
     pose = devices.sim.robot.pose
@@ -167,17 +183,10 @@ async def test_teleop_forward_needs_a_fresh_map_turning_and_reversing_do_not() -
         assert sim is not None and sim.uno is not None
         uno = sim.uno
 
-        async def teleop_until(v: float, omega: float, ok: Callable[[], bool], what: str) -> None:
-            deadline = time.monotonic() + 5.0
-            while not ok():
-                assert time.monotonic() < deadline, f"timed out waiting for {what}"
-                rt.teleop("t", v, omega)
-                await asyncio.sleep(0.05)
-
         assert rt.state is State.IDLE, "an operator driving, not autonomy"
-        await teleop_until(0.2, 0.0, lambda: uno.pwm[0] > 0 and uno.pwm[1] > 0, "forward")
+        await teleop_until(rt, 0.2, 0.0, lambda: uno.pwm[0] > 0 and uno.pwm[1] > 0, "forward")
         made[0].stall.set()
-        await teleop_until(0.2, 0.0, lambda: uno.pwm == (0, 0), "the blind forward stop")
+        await teleop_until(rt, 0.2, 0.0, lambda: uno.pwm == (0, 0), "the blind forward stop")
         status = rt.status()
         assert status["stop_cause"] == "clearance"
         assert status["stop_reason"].startswith("clearance unknown: map ")
@@ -187,11 +196,11 @@ async def test_teleop_forward_needs_a_fresh_map_turning_and_reversing_do_not() -
             await asyncio.sleep(0.05)
             assert uno.pwm == (0, 0)
         # Turning in place and backing away stay possible on a stalled perception.
-        await teleop_until(0.0, 1.0, lambda: uno.pwm[0] * uno.pwm[1] < 0, "turning")
-        await teleop_until(-0.1, 0.0, lambda: uno.pwm[0] < 0 and uno.pwm[1] < 0, "reversing")
+        await teleop_until(rt, 0.0, 1.0, lambda: uno.pwm[0] * uno.pwm[1] < 0, "turning")
+        await teleop_until(rt, -0.1, 0.0, lambda: uno.pwm[0] < 0 and uno.pwm[1] < 0, "reversing")
 
         made[0].stall.clear()
-        await teleop_until(0.2, 0.0, lambda: uno.pwm[0] > 0 and uno.pwm[1] > 0, "forward again")
+        await teleop_until(rt, 0.2, 0.0, lambda: uno.pwm[0] > 0 and uno.pwm[1] > 0, "forward again")
         assert rt.status()["stop_reason"] is None
         rt.release_teleop("t")
 
@@ -345,16 +354,13 @@ async def test_a_safe_zone_that_is_not_floor_stops_forward_motion_until_it_is_ag
         assert abs(sim.robot.pose.theta_rad - start_theta) > 0.05
 
         # The gate refuses forward motion to anyone: teleop forward stands still.
-        async def drive_forward_until(predicate: Callable[[], bool], what: str) -> None:
-            deadline = time.monotonic() + 2.0
-            while not predicate():
-                assert time.monotonic() < deadline, f"timed out waiting for {what}"
-                rt.teleop("t", 0.2, 0.0)
-                await asyncio.sleep(0.05)
-
-        await drive_forward_until(
+        await teleop_until(
+            rt,
+            0.2,
+            0.0,
             lambda: (drive := rt.drives.peek()) is not None and drive.source == "teleop",
             "teleop to drive",
+            2.0,
         )
         for _ in range(5):
             rt.teleop("t", 0.2, 0.0)
@@ -365,7 +371,9 @@ async def test_a_safe_zone_that_is_not_floor_stops_forward_motion_until_it_is_ag
 
         # The zone is floor again: the stop clears by itself and forward motion resumes.
         made[0].confidence = 0.9
-        await drive_forward_until(lambda: uno.pwm[0] > 0 and uno.pwm[1] > 0, "forward motion")
+        await teleop_until(
+            rt, 0.2, 0.0, lambda: uno.pwm[0] > 0 and uno.pwm[1] > 0, "forward motion", 2.0
+        )
         status = rt.status()
         assert status["zone_floor_confidence"] == 0.9
         assert status["stop_cause"] is None and status["stop_reason"] is None
