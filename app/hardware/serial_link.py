@@ -67,6 +67,12 @@ from app.hardware.protocol import (
 log = logging.getLogger(__name__)
 
 MOTOR_COUNT = 2
+SILENCE_SLICE_FRACTION = 0.25
+"""The reader listens for silence in slices of this fraction of the timeout, so that a
+stall of the host (which a device on the same machine shares) is seen and not counted."""
+STALL_TOLERANCE_S = 0.02
+"""A read returning this much later than scheduled is still ordinary scheduling delay;
+beyond it, the excess was a stall of this process."""
 
 # -- errors -----------------------------------------------------------------------------
 
@@ -452,10 +458,27 @@ class _Connection:
         self.ready = False
         self.consecutive_timeouts = 0
         self.last_uptime_ms: int | None = None
-        self.last_telemetry_s = 0.0
+        self.last_telemetry_s = 0.0  # on the awake clock (`awake_s`)
         self.last_flags = 0
+        self.stalled_s = 0.0
         self.tasks: list[asyncio.Task[None]] = []
         self.closed = False
+
+    def awake_s(self) -> float:
+        """``time.monotonic()`` less the time the reader saw this process stalled.
+
+        Silence is judged on this clock. While the host does not run (a VM paused, the
+        CPU starved, a long GC), a device on the same machine (the simulated Uno's
+        process, simavr) does not run either, and when both resume the host's timers
+        fire before the device has had a chance to speak: that is not a pulled cable.
+        A real Uno keeps talking through a host stall and its bytes wait in the OS
+        buffer, so for real hardware this clock changes nothing."""
+        return time.monotonic() - self.stalled_s
+
+    def note_wait(self, waited_s: float, scheduled_s: float) -> None:
+        """A read scheduled for at most ``scheduled_s`` took ``waited_s``: what exceeds the
+        schedule by more than `STALL_TOLERANCE_S` was a stall, not time spent listening."""
+        self.stalled_s += max(0.0, waited_s - scheduled_s - STALL_TOLERANCE_S)
 
 
 class UnoLink:
@@ -870,7 +893,7 @@ class UnoLink:
             await self._close_connection(conn)
             raise conn.failed.result()
         conn.ready = True
-        conn.last_telemetry_s = time.monotonic()
+        conn.last_telemetry_s = conn.awake_s()
         self.stats.connects += 1
         if self.stats.connects > 1:
             self.stats.reconnects += 1
@@ -926,15 +949,25 @@ class UnoLink:
 
     async def _read_loop(self, conn: _Connection) -> None:
         cfg = self.config
+        silent_since_s = conn.awake_s()
         try:
             while True:
                 timeout_s = cfg.silence_timeout_s if conn.ready else cfg.handshake_timeout_s
-                data = await conn.transport.read(timeout_s)
-                if not data:
+                # Listen in slices so that a stall of this process is measured and not
+                # counted as silence (see `_Connection.awake_s`).
+                remaining_s = silent_since_s + timeout_s - conn.awake_s()
+                if remaining_s <= 0:
                     raise LinkSilentError(
                         f"no bytes from {self.port} for {timeout_s * 1000:.0f} ms: cable "
                         "pulled or firmware hung?"
                     )
+                slice_s = min(remaining_s, timeout_s * SILENCE_SLICE_FRACTION)
+                started_s = time.monotonic()
+                data = await conn.transport.read(slice_s)
+                conn.note_wait(time.monotonic() - started_s, slice_s)
+                if not data:
+                    continue
+                silent_since_s = conn.awake_s()
                 received_s = time.perf_counter()
                 decoder = conn.decoder
                 frames = decoder.feed(data)
@@ -957,7 +990,7 @@ class UnoLink:
         firmware rebooted (it boots with telemetry off) or is confused. Reconnect."""
         if not conn.ready or not self.config.telemetry_period_ms or conn.failed.done():
             return
-        silent_s = time.monotonic() - conn.last_telemetry_s
+        silent_s = conn.awake_s() - conn.last_telemetry_s
         if silent_s > self.config.silence_timeout_s:
             self._fail(
                 conn,
@@ -998,7 +1031,7 @@ class UnoLink:
 
     def _on_telemetry_frame(self, conn: _Connection, data: Telemetry) -> None:
         self.stats.telemetry_frames += 1
-        conn.last_telemetry_s = time.monotonic()
+        conn.last_telemetry_s = conn.awake_s()
         last = conn.last_uptime_ms
         conn.last_uptime_ms = data.uptime_ms
         if last is not None and 0 < (last - data.uptime_ms) % 2**32 < 2**31:

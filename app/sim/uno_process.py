@@ -402,7 +402,12 @@ class SimulatedUnoProcess:
                 str(left),
                 str(right),
             ]
-            # stderr is shared: a crash's traceback lands in the daemon's log.
+            # stderr is shared: a crash's traceback lands in the daemon's log. A session
+            # of its own puts the child in its own scheduler autogroup (where the kernel
+            # has them), so the daemon's busy threads cannot starve it of CPU as one of
+            # its own threads would be: a real board does not share the host's CPU at
+            # all. It still ends with the host (its stdin closes), and a Ctrl-C in the
+            # terminal reaches the host only, which then ends it in order.
             proc = subprocess.Popen(
                 command,
                 stdin=subprocess.PIPE,
@@ -410,6 +415,7 @@ class SimulatedUnoProcess:
                 text=True,
                 bufsize=1,
                 cwd=PROJECT_ROOT,
+                start_new_session=True,
             )
             self._proc = proc
         assert proc.stdout is not None

@@ -268,3 +268,53 @@ def test_the_stall_check_catches_a_uno_that_is_a_thread_of_the_host(tmp_path: Pa
     with SimulatedUno(link_path=tmp_path / "uno") as uno:
         gap_s, _ = telemetry_gap_over_a_stall(uno.port, stall_s=0.5)
     assert gap_s >= 0.4
+
+
+async def test_a_stall_of_the_whole_machine_is_not_a_pulled_cable(
+    uno: SimulatedUnoProcess,
+) -> None:
+    """A VM paused or a starved CPU stops the host and the simulated Uno together; when
+    both resume, the host's silence timer fires before the Uno has had a chance to speak.
+    The link must count only the time it was awake to listen."""
+    assert uno.pid is not None
+    async with UnoLink(uno.port) as link:
+        await link.wait_connected(5.0)
+        await asyncio.sleep(0.1)
+        os.kill(uno.pid, signal.SIGSTOP)
+        try:
+            time.sleep(0.5)  # this event loop stalls as long as the Uno does
+        finally:
+            os.kill(uno.pid, signal.SIGCONT)
+        await asyncio.sleep(0.5)
+        assert link.state is DeviceState.CONNECTED, link.status().detail
+        assert link.stats.connects == 1
+
+
+async def test_a_uno_that_stops_while_the_host_runs_still_faults_as_silent(
+    uno: SimulatedUnoProcess,
+) -> None:
+    """The stall allowance above does not hide a Uno that stopped on its own: the link
+    still fails within the silence timeout (the ACK timeouts may say it first)."""
+    assert uno.pid is not None
+    async with UnoLink(uno.port, config=FAST_RECONNECT) as link:
+        await link.wait_connected(5.0)
+        os.kill(uno.pid, signal.SIGSTOP)
+        stopped_s = time.monotonic()
+        try:
+            fault = await link.wait_state(DeviceState.FAILED, timeout_s=1.0)
+            detected_s = time.monotonic() - stopped_s
+        finally:
+            os.kill(uno.pid, signal.SIGCONT)
+        assert "no bytes from" in fault.detail or "without ACK" in fault.detail
+        assert detected_s < 0.2 + 0.1 + 0.1  # the timeout, one telemetry period, slack
+
+
+def test_the_child_runs_in_a_session_and_scheduler_group_of_its_own(
+    uno: SimulatedUnoProcess,
+) -> None:
+    """So a busy daemon cannot starve it (the kernel's autogroups follow sessions)."""
+    assert uno.pid is not None
+    assert os.getsid(uno.pid) == uno.pid != os.getsid(0)
+    autogroup = Path(f"/proc/{uno.pid}/autogroup")
+    if autogroup.exists():
+        assert autogroup.read_text() != Path("/proc/self/autogroup").read_text()
