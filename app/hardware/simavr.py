@@ -76,6 +76,9 @@ class SimavrUno:
             build_firmware()
         if not HARNESS_PATH.is_file() or not ELF_PATH.is_file():
             raise SimavrError(f"firmware not built: {HARNESS_PATH} / {ELF_PATH} missing")
+        # A session (and so a scheduler autogroup) of its own, like the simulated Uno's
+        # process: the daemon's busy threads cannot starve the emulated board. It ends
+        # with its stdin, i.e. with us.
         self._proc = subprocess.Popen(
             [str(HARNESS_PATH), str(ELF_PATH)],
             stdin=subprocess.PIPE,
@@ -83,6 +86,7 @@ class SimavrUno:
             stderr=subprocess.DEVNULL,
             text=True,
             bufsize=1,
+            start_new_session=True,
         )
         assert self._proc.stdout is not None and self._proc.stdin is not None
         ready = threading.Event()

@@ -11,8 +11,9 @@ The child, ``python -m app.sim.uno_process --link PATH [--encoders L R]``, write
 
 ``PTY <path>``
     the port is up (always the first line; again after a `SimulatedUnoProcess.replug`)
-``MOTOR <left> <right>``
-    the motor PWM changed
+``MOTOR <left> <right> <t>``
+    the motor PWM changed at ``t``, the child's ``time.monotonic()`` (one clock for all
+    processes on Linux), so the host knows when the Uno acted, not only when it heard
 ``RX <type>``
     a valid frame of that `MsgType` arrived (written before its reply goes out)
 ``OK <id>``
@@ -119,7 +120,7 @@ class RelayPlant:
             if (left_pwm, right_pwm) == self._pwm:
                 return
             self._pwm = (left_pwm, right_pwm)
-        self._lines.write(f"MOTOR {left_pwm} {right_pwm}")
+        self._lines.write(f"MOTOR {left_pwm} {right_pwm} {time.monotonic():.6f}")
 
     def read_encoders(self) -> tuple[int, int]:
         with self._lock:
@@ -238,6 +239,8 @@ class SimulatedUnoProcess:
     port : the symlink to open; stays the same across restarts and replugs.
     pty_path : the pty the symlink currently points to.
     pwm : the last motor command the child reported ((0, 0) while no child runs).
+    pwm_changed_s : when the child applied it (``time.monotonic()``; the host reads the
+        report a little later, when its thread gets to it).
     restarts : how many times the child died while in use (each death is followed by
         a restart).
     """
@@ -264,6 +267,7 @@ class SimulatedUnoProcess:
         self.stop_timeout_s = stop_timeout_s
         self.pty_path = ""
         self.pwm = (0, 0)
+        self.pwm_changed_s = time.monotonic()
         self.restarts = 0
 
         self._dir: Path | None = None
@@ -510,6 +514,7 @@ class SimulatedUnoProcess:
         try:
             if kind == "MOTOR":
                 left, right = int(words[0]), int(words[1])
+                self.pwm_changed_s = float(words[2])
                 self.pwm = (left, right)
                 self.plant.apply_pwm(left, right)
             elif kind == "RX":
@@ -541,6 +546,7 @@ class SimulatedUnoProcess:
 
     def _motors_off(self) -> None:
         if self.pwm != (0, 0):
+            self.pwm_changed_s = time.monotonic()
             self.pwm = (0, 0)
             self.plant.apply_pwm(0, 0)
 

@@ -87,9 +87,12 @@ async def test_a_link_drives_the_plant_and_reads_its_encoders(
     async with UnoLink(uno.port) as link:
         await link.wait_connected(5.0)
         assert link.banner is not None and link.banner.firmware.startswith("floornav-sim")
+        sent_s = time.monotonic()
         await link.drive(120, -80)
         await eventually(lambda: plant.pwm == (120, -80), 1.0, "the plant to get the PWM")
         assert uno.pwm == (120, -80)
+        # When the child set it, on the clock every process shares.
+        assert sent_s < uno.pwm_changed_s <= time.monotonic()
 
         plant.encoders = (500, -300)
 
