@@ -4,9 +4,9 @@
 The browser tests take them against the real daemon on the simulator (Debian's
 chromium, see tests/browser/conftest.py): the dashboard in each stop state (e-stop
 latched, protective stop with its cause, blocked by clearance while driving by key,
-latched fault, calibration failed), on a phone while driving with the pad, and the
-plain dashboard, e-stop and calibration views. They are 256-colour PNGs below 150 KB
-(tests/browser/shots.py).
+blocked on a map too old to judge, latched fault, calibration failed), on a phone while
+driving with the pad, and the plain dashboard, e-stop and calibration views. They are
+256-colour PNGs below 150 KB (tests/browser/shots.py).
 
     nice -n 19 .venv/bin/python scripts/dashboard_screenshots.py [--out DIR] [PYTEST ARGS]
 """

@@ -309,7 +309,8 @@ def test_viser_page_needs_the_cookie_or_the_token(door: TestClient) -> None:
     assert response.status_code == 401
     assert response.headers["www-authenticate"] == "Bearer"
     assert "/api/session" in response.json()["detail"]
-    assert door.get("/viser/", headers={"Authorization": "Bearer wrong-0123456789abc"}).status_code
+    wrong = {"Authorization": "Bearer wrong-0123456789abc"}
+    assert door.get("/viser/", headers=wrong).status_code == 401
     assert door.get("/viser/", headers=bearer()).status_code == 200
     door.cookies.set(COOKIE_NAME, "0" * 64)
     assert door.get("/viser/").status_code == 401
