@@ -9,6 +9,7 @@ the layer below all of these."""
 from __future__ import annotations
 
 import logging
+import math
 
 from app.channels import wait_event
 from app.control.kinematics import RateLimiter, twist_to_pwm
@@ -21,6 +22,12 @@ from app.runtime.stops import ProtectiveStop
 from app.runtime.telemetry import FloatWindow
 
 log = logging.getLogger("floornav.runtime")
+
+
+def _ms_over(age_s: float) -> int:
+    """An age that is over its limit, in whole ms rounded up: a map 500.4 ms old is
+    shown as 501 against a 500 ms limit, never as "500 ms old (> 500 ms)"."""
+    return math.ceil(age_s * 1000)
 
 
 def zone_not_floor(shared: Shared, now: float) -> FloorMsg | None:
@@ -58,7 +65,7 @@ class SafetyGate:
         # (later) steering time would: the stop is counted as what it is.
         for what, age_s in (("perception", floor.age_s(now)), ("map", map_msg.age_s(now))):
             if age_s > max_age_s:
-                return f"{what} {age_s * 1000:.0f} ms old (> {max_age_s * 1000:.0f} ms)"
+                return f"{what} {_ms_over(age_s)} ms old (> {max_age_s * 1000:.0f} ms)"
         return None
 
     def apply(self, out: MuxOutput, now: float) -> MuxOutput:
@@ -132,7 +139,7 @@ class SafetyGate:
                 problem = "clearance unknown: no map yet"
             elif map_msg.age_s(now) > safety.perception_max_age_s:
                 problem = (
-                    f"clearance unknown: map {map_msg.age_s(now) * 1000:.0f} ms old "
+                    f"clearance unknown: map {_ms_over(map_msg.age_s(now))} ms old "
                     f"(> {safety.perception_max_age_s * 1000:.0f} ms)"
                 )
             elif map_msg.clearance_ahead_m < safety.min_clearance_m:
