@@ -370,8 +370,10 @@ function renderStatus(s) {
     ? fmt(s.zone_floor_confidence * 100) + " %" + (zoneLow ? " · not floor (below " + fmt(zoneMin * 100) + " %)" : "")
     : "–", zoneLow ? "bad" : (typeof s.zone_floor_confidence === "number" ? "ok" : ""));
   const estopped = s.state === "estopped";
-  setCell("h-stop", estopped ? "e-stop latched: " + (s.estop || "") : (s.stop_reason || "none"),
-    estopped ? "bad" : (s.stop_reason ? "warn" : ""));
+  // What holds the robot now: the current stop's reason, else what the stop lines say
+  // (a failed calibration leaves autonomy off without a protective stop).
+  setCell("h-stop", estopped ? "e-stop latched: " + (s.estop || "") : (s.stop_reason || stoppedBy || "none"),
+    estopped ? "bad" : (s.stop_reason || stoppedBy ? "warn" : ""));
   const c = s.command;
   setCell("h-command", c ? `${fmt(c.v_m_s, 2)} m/s · ${fmt(c.omega_rad_s, 2)} rad/s · PWM ${c.left_pwm}/${c.right_pwm} · ${c.source}` : "none yet");
   setCell("h-calibration", s.calibration ? "reprojection RMS " + fmt(s.calibration.reprojection_rms_px, 2) + " px"

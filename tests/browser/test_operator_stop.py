@@ -836,6 +836,7 @@ def test_stop_reason_calibration_failed(page: Page, rig: LiveServer, screenshots
     expect(line).to_contain_text("Calibration failed")
     expect(line).to_contain_text(CLOCK)
     expect(line).to_contain_text(re.compile(r"autonomy (stays )?off"))
+    expect(page.locator("#h-stop")).to_contain_text("a failed calibration (autonomy off)")
     expect(page.locator("#stop-last")).to_contain_text("last stop: calibration")
     no_fault_none(page)
     assert not rig.status()["autonomous"]
