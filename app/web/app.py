@@ -17,6 +17,8 @@ from fastapi.exceptions import RequestValidationError
 from fastapi.responses import JSONResponse
 from fastapi.staticfiles import StaticFiles
 from starlette.exceptions import HTTPException as StarletteHTTPException
+from starlette.routing import Match, Mount, Router
+from starlette.types import Scope
 
 from app.mapping.calibration import CalibrationError
 from app.runtime import CommandRefusedError
@@ -47,6 +49,23 @@ def _validation_detail(exc: RequestValidationError) -> tuple[str, list[dict[str,
         errors.append({"loc": loc, "msg": message, "type": str(error.get("type", ""))})
         parts.append(f"{'.'.join(loc)}: {message}" if loc else message)
     return "; ".join(parts) or "invalid request", errors
+
+
+class StaticFallback(Mount):
+    """The dashboard's files at ``/``, for the paths no other route serves. A plain mount
+    at ``/`` matches every path fully, so a wrong method on an API path (``GET
+    /api/teleop``) reached the files and got their 404 instead of the router's 405 with
+    its ``Allow``."""
+
+    def __init__(self, router: Router, directory: Path) -> None:
+        super().__init__("/", app=StaticFiles(directory=directory, html=True), name="static")
+        self._router = router
+
+    def matches(self, scope: Scope) -> tuple[Match, Scope]:
+        for route in self._router.routes:
+            if route is not self and route.matches(scope)[0] is not Match.NONE:
+                return Match.NONE, {}
+        return super().matches(scope)
 
 
 def create_app(
@@ -142,6 +161,6 @@ def create_app(
     if viser_router is not None:
         app.include_router(viser_router)
     if static_dir is not None:
-        app.mount("/", StaticFiles(directory=static_dir, html=True), name="static")
+        app.router.routes.append(StaticFallback(app.router, static_dir))
     document_error_responses(app)
     return app

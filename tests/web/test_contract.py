@@ -6,7 +6,11 @@ from __future__ import annotations
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from .conftest import AUTH
+from app.web import create_app
+from app.web.server import PROJECT_STATIC
+
+from .conftest import AUTH, TOKEN
+from .fakes import FakeService
 
 
 def test_a_405_lists_every_method_of_the_path(client: TestClient) -> None:
@@ -40,3 +44,21 @@ def test_every_422_is_documented_in_the_shape_it_is_sent(app: FastAPI) -> None:
             body = answer["content"]["application/json"]["schema"]
             assert body == {"$ref": "#/components/schemas/ErrorResponse"}, (method, path)
     assert "HTTPValidationError" not in schema["components"]["schemas"]
+
+
+def test_beside_the_dashboard_files_a_wrong_method_still_gets_405(service: FakeService) -> None:
+    """The daemon serves static/ at ``/``; that mount must not answer API paths (schemathesis
+    against the running daemon found GET /api/teleop/release answered 404 by the files)."""
+    client = TestClient(create_app(service, token=TOKEN, static_dir=PROJECT_STATIC))
+    for path in ("/api/teleop/release", "/api/start", "/api/estop"):
+        response = client.get(path, headers=AUTH)
+        assert response.status_code == 405, path
+        assert response.headers["allow"] == "POST"
+    assert client.request("OPTIONS", "/api/config", headers=AUTH).headers["allow"] == (
+        "GET, HEAD, PATCH"
+    )
+    # The files themselves are still there, and a missing one is still a 404.
+    assert client.get("/").status_code == 200 and "<html" in client.get("/").text.lower()
+    assert client.get("/app.js").status_code == 200
+    assert client.get("/no-such-page").status_code == 404
+    assert client.get("/api/status").status_code == 200
