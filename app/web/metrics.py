@@ -202,7 +202,8 @@ class RuntimeCollector(Collector):
         stops = CounterMetricFamily(
             "floornav_stops",
             "Stops by cause: protective (link, camera, stale: motors zero, resume by "
-            "themselves) and forward-only (clearance, not_floor)",
+            "themselves), forward-only (clearance, not_floor), and calibration (a failed "
+            "calibration left autonomy off)",
             labels=["cause"],
         )
         for cause, count in policy.stops_by_cause.items():
