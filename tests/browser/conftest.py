@@ -14,12 +14,13 @@ import gc
 import os
 import threading
 import time
-from collections.abc import Callable, Iterator
+from collections.abc import Callable, Coroutine, Iterator
 from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Any, TypeVar
 
 import pytest
+from playwright.sync_api import Page
 
 from app.config import load_config
 from app.devices import open_devices
@@ -186,3 +187,30 @@ def browser_context_args(browser_context_args: dict[str, Any]) -> dict[str, Any]
 def screenshots() -> Path:
     SCREENSHOTS.mkdir(parents=True, exist_ok=True)
     return SCREENSHOTS
+
+
+# -- helpers the browser tests share ----------------------------------------------------
+
+
+def wait_for(condition: Callable[[], object], timeout_s: float, what: str) -> None:
+    deadline = time.monotonic() + timeout_s
+    while not condition():
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
+        time.sleep(0.01)
+
+
+def wait_js(page: Page, expression: str, timeout_s: float = 10.0) -> None:
+    """Wait until ``expression`` is truthy in the page. Polled with evaluate:
+    ``page.wait_for_function`` compiles its predicate with eval, which the dashboard's
+    Content-Security-Policy refuses."""
+    deadline = time.monotonic() + timeout_s
+    while not page.evaluate(expression):
+        if time.monotonic() > deadline:
+            pytest.fail(f"timed out after {timeout_s} s waiting for {expression}")
+        page.wait_for_timeout(20)
+
+
+def run_async(server: LiveServer, make: Callable[[], Coroutine[Any, Any, Any]]) -> Any:
+    """Run a coroutine of the daemon on its event loop and wait for its result."""
+    return asyncio.run_coroutine_threadsafe(make(), server.loop).result(30)

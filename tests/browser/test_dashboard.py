@@ -11,7 +11,7 @@ from pathlib import Path
 import pytest
 from playwright.sync_api import Page, expect
 
-from tests.browser.conftest import TOKEN, LiveServer
+from tests.browser.conftest import TOKEN, LiveServer, wait_for, wait_js
 from tests.browser.shots import save_screenshot
 
 pytestmark = pytest.mark.browser
@@ -26,29 +26,9 @@ def open_dashboard(page: Page, server: LiveServer) -> None:
     expect(page.locator("#conn-control")).to_have_class("dot on")
 
 
-def wait_js(page: Page, expression: str, timeout_s: float) -> None:
-    """Wait until ``expression`` is truthy in the page. Polled with evaluate:
-    ``page.wait_for_function`` compiles its predicate with eval, which the dashboard's
-    Content-Security-Policy refuses."""
-    deadline = time.monotonic() + timeout_s
-    while not page.evaluate(expression):
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {expression}")
-        page.wait_for_timeout(20)
-
-
 def focus_the_page(page: Page) -> None:
     """Keys go to the page, not to a button or field."""
     page.evaluate("document.activeElement && document.activeElement.blur()")
-
-
-def wait_for(condition: object, timeout_s: float, what: str) -> None:
-    assert callable(condition)
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.02)
 
 
 def test_video_frames_arrive_with_low_latency(

@@ -9,8 +9,7 @@ from typing import Any
 import pytest
 from playwright.sync_api import Page, Route, expect
 
-from tests.browser.conftest import LiveServer
-from tests.browser.test_operator_stop import run_async, wait_for
+from tests.browser.conftest import LiveServer, run_async, wait_for
 
 pytestmark = pytest.mark.browser
 

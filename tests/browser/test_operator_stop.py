@@ -12,12 +12,11 @@ The issue's target is 100 ms; what is asserted is `StopTiming.check`.
 
 from __future__ import annotations
 
-import asyncio
 import itertools
 import re
 import threading
 import time
-from collections.abc import Callable, Coroutine, Iterator
+from collections.abc import Callable, Iterator
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Any
@@ -29,7 +28,7 @@ from app.config import PerceptionConfig
 from app.hardware.protocol import Frame, MsgType, drive_payload, encode_frame
 from app.perception.pipeline import FloorResult, FloorSegmenter
 from app.runtime import CommandRefusedError
-from tests.browser.conftest import TOKEN, LiveServer
+from tests.browser.conftest import TOKEN, LiveServer, run_async, wait_for, wait_js
 from tests.browser.shots import MAX_BYTES, save_screenshot
 
 pytestmark = pytest.mark.browser
@@ -53,25 +52,6 @@ measured: dict[str, float] = {}
 # -- helpers ---------------------------------------------------------------------------
 
 
-def wait_for(condition: Callable[[], object], timeout_s: float, what: str) -> None:
-    deadline = time.monotonic() + timeout_s
-    while not condition():
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {what}")
-        time.sleep(0.01)
-
-
-def wait_js(page: Page, expression: str, timeout_s: float = 10.0) -> None:
-    """Wait until ``expression`` is truthy in the page (polled with evaluate:
-    ``page.wait_for_function`` compiles its predicate with eval, which the dashboard's
-    CSP refuses)."""
-    deadline = time.monotonic() + timeout_s
-    while not page.evaluate(expression):
-        if time.monotonic() > deadline:
-            pytest.fail(f"timed out after {timeout_s} s waiting for {expression}")
-        page.wait_for_timeout(20)
-
-
 def uno_pwm(server: LiveServer) -> tuple[int, int]:
     """What the simulated Uno drives its motors with now."""
     sim = server.runtime.devices.sim
@@ -83,10 +63,6 @@ def uno_connected(server: LiveServer) -> None:
     """Wait for the Uno link (on a loaded machine the simulated Uno's link can stall and
     reconnect; nothing drives meanwhile)."""
     wait_for(lambda: server.status()["serial"]["state"] == "connected", 15.0, "the Uno connected")
-
-
-def run_async(server: LiveServer, make: Callable[[], Coroutine[Any, Any, Any]]) -> Any:
-    return asyncio.run_coroutine_threadsafe(make(), server.loop).result(30)
 
 
 class StopTrace:

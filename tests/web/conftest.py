@@ -17,6 +17,7 @@ from fastapi.testclient import TestClient
 
 from app.config import FloornavConfig
 from app.web import create_app
+from app.web.server import PROJECT_STATIC
 
 from .fakes import FakeService
 
@@ -49,6 +50,12 @@ def client(app: FastAPI) -> Iterator[TestClient]:
     # so slots published through ``client.portal`` wake the app's waiters.
     with TestClient(app) as test_client:
         yield test_client
+
+
+@pytest.fixture
+def dashboard(service: FakeService) -> TestClient:
+    """The app as the daemon builds it: with the dashboard's files at ``/``."""
+    return TestClient(create_app(service, token=TOKEN, static_dir=PROJECT_STATIC))
 
 
 @dataclass(frozen=True)

@@ -6,11 +6,7 @@ from __future__ import annotations
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from app.web import create_app
-from app.web.server import PROJECT_STATIC
-
-from .conftest import AUTH, TOKEN
-from .fakes import FakeService
+from .conftest import AUTH
 
 
 def test_a_405_lists_every_method_of_the_path(client: TestClient) -> None:
@@ -46,10 +42,10 @@ def test_every_422_is_documented_in_the_shape_it_is_sent(app: FastAPI) -> None:
     assert "HTTPValidationError" not in schema["components"]["schemas"]
 
 
-def test_beside_the_dashboard_files_a_wrong_method_still_gets_405(service: FakeService) -> None:
+def test_beside_the_dashboard_files_a_wrong_method_still_gets_405(dashboard: TestClient) -> None:
     """The daemon serves static/ at ``/``; that mount must not answer API paths (schemathesis
     against the running daemon found GET /api/teleop/release answered 404 by the files)."""
-    client = TestClient(create_app(service, token=TOKEN, static_dir=PROJECT_STATIC))
+    client = dashboard
     for path in ("/api/teleop/release", "/api/start", "/api/estop"):
         response = client.get(path, headers=AUTH)
         assert response.status_code == 405, path

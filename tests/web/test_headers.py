@@ -8,18 +8,11 @@ import pytest
 from fastapi import FastAPI
 from fastapi.testclient import TestClient
 
-from app.web import create_app
 from app.web.body_limit import MAX_REQUEST_BODY_BYTES
 from app.web.headers import DASHBOARD_CSP
 from app.web.server import PROJECT_STATIC
 
-from .conftest import AUTH, TOKEN
-from .fakes import FakeService
-
-
-@pytest.fixture
-def dashboard(service: FakeService) -> TestClient:
-    return TestClient(create_app(service, token=TOKEN, static_dir=PROJECT_STATIC))
+from .conftest import AUTH
 
 
 @pytest.mark.parametrize(
