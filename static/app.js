@@ -372,8 +372,9 @@ function renderStatus(s) {
   const estopped = s.state === "estopped";
   // What holds the robot now: the current stop's reason, else what the stop lines say
   // (a failed calibration leaves autonomy off without a protective stop).
-  setCell("h-stop", estopped ? "e-stop latched: " + (s.estop || "") : (s.stop_reason || stoppedBy || "none"),
-    estopped ? "bad" : (s.stop_reason || stoppedBy ? "warn" : ""));
+  const holding = s.stop_reason || stoppedBy;
+  setCell("h-stop", estopped ? "e-stop latched: " + (s.estop || "") : (holding || "none"),
+    estopped ? "bad" : (holding ? "warn" : ""));
   const c = s.command;
   setCell("h-command", c ? `${fmt(c.v_m_s, 2)} m/s · ${fmt(c.omega_rad_s, 2)} rad/s · PWM ${c.left_pwm}/${c.right_pwm} · ${c.source}` : "none yet");
   setCell("h-calibration", s.calibration ? "reprojection RMS " + fmt(s.calibration.reprojection_rms_px, 2) + " px"
