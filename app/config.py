@@ -180,6 +180,13 @@ class MappingConfig(StrictModel):
     (`app.mapping.frontiers`); exploration finishes when no such edge is left."""
     robot_radius_m: Annotated[float, Field(gt=0.0, le=2.0)] = 0.12
     inflation_radius_m: Annotated[float, Field(ge=0.0, le=2.0)] = 0.15
+    """Paths keep the robot's centre at least this far from occupied cells' centres."""
+    path_clearance_preferred_m: Annotated[float, Field(ge=0.0, le=3.0)] = 0.30
+    """Paths prefer to keep the centre this far from obstacles (the robot's side 0.18 m
+    clear); closer costs more, up to ``path_clearance_cost`` (`app.mapping.frontiers`)."""
+    path_clearance_cost: Annotated[float, Field(ge=0.0, le=20.0)] = 1.0
+    """A move at ``inflation_radius_m`` costs 1 + this times its length (0: shortest paths,
+    which graze every obstacle at the inflation radius)."""
     parallax_floor: bool = True
     """Motion parallax between two frames (`app.perception.planar`, ~2-3 ms nogil per
     tested frame, at most 5 a second): floor it finds flat joins the map's confirmed

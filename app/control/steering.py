@@ -11,9 +11,10 @@
    nearest window; with no open window at all, the robot turns in place towards the
    desired heading (it is blocked).
 4. Speed: heading errors beyond ``turn_in_place_rad`` turn in place; otherwise the
-   forward speed falls with the heading error and with the free range ahead (ranges end
-   where the robot's body would touch), from ``slow_down_m`` above the minimum clearance
-   down to zero at it. An open window whose range is already within the clearance leads
+   forward speed falls with the heading error and with the free range over the fan of
+   directions from straight ahead to the heading (the robot drives an arc through them;
+   ranges end where its body would touch), from ``slow_down_m`` above the minimum
+   clearance down to zero at it. An open window whose range is already within the clearance leads
    nowhere: the robot turns towards the goal instead, to look.
 5. Blocked ahead (the runtime says the safe zone in front is not floor): no forward
    motion, and a turn in place at ``turn_speed_rad_s`` towards the side with more free
@@ -56,6 +57,17 @@ class PolarRanges:
         diff = np.abs(_wrap(self.angles_rad - angle_rad))
         near = diff <= max(half_width_rad, math.pi / len(self.angles_rad))
         return float(self.ranges_m[near].min())
+
+    def range_sweeping_to(self, angle_rad: float) -> float:
+        """The smallest range over the directions from straight ahead (0) to
+        ``angle_rad``, both included: how far the robot can drive while it turns from its
+        heading to ``angle_rad``. An arc that starts along 0 and ends along
+        ``angle_rad`` stays within that fan (its chord's bearing is half the turn), so on
+        a fan whose every ray is free for ``d`` the body touches nothing for ``d``."""
+        lo, hi = sorted((0.0, float(wrap_angle(angle_rad))))
+        half_step = math.pi / len(self.angles_rad)
+        inside = (self.angles_rad >= lo - half_step) & (self.angles_rad <= hi + half_step)
+        return float(self.ranges_m[inside].min())
 
 
 def _wrap(angle: NDArray[np.float64]) -> NDArray[np.float64]:
@@ -275,9 +287,8 @@ class Steering:
             omega = math.copysign(cfg.turn_speed_rad_s, desired)
             return self._finish(Twist(0.0, omega), desired, desired, polar, "blocked")
         reason = "goal" if abs(wrap_angle(heading - desired)) < 1e-6 else "window"
-        # Obstacles are already grown by the body; the centre ray is the robot's path.
+        # Obstacles are already grown by the body (plus margin): what is left is clearance.
         range_ahead = polar.range_towards(heading)
-        # Ranges already stop at the body (plus margin): what is left is clearance.
         stop_at = self.safety.min_clearance_m
         if range_ahead <= stop_at and abs(wrap_angle(heading - desired)) > cfg.window_margin_rad:
             # The open window leads nowhere yet: turn to look towards the goal instead
@@ -289,6 +300,9 @@ class Steering:
         )
         if abs(heading) > cfg.turn_in_place_rad:
             return self._finish(Twist(0.0, omega), heading, desired, polar, reason, range_ahead)
+        # The robot does not jump to the heading: it drives an arc from its own, so the
+        # speed answers to every ray in between (turning alone needs no room).
+        range_ahead = polar.range_sweeping_to(heading)
         room = max(0.0, min(1.0, (range_ahead - stop_at) / cfg.slow_down_m))
         v = cfg.cruise_speed_m_s * room * math.cos(heading) ** 2
         return self._finish(Twist(v, omega), heading, desired, polar, reason, range_ahead)

@@ -11,7 +11,18 @@ and no corner cutting (a diagonal move needs both cells beside it traversable, s
 diagonal wall of single cells is not a door). Traversable cells are free cells farther
 than ``inflation_radius_m`` from every occupied cell (the robot's centre must stay that
 far from obstacles), plus the robot's *footprint*: the cells within ``robot_radius_m`` of
-its position (always including its own cell) that are not occupied. The footprint counts
+its position (always including its own cell) that are not occupied.
+
+**Clearance.** The shortest path hugs every obstacle at exactly ``inflation_radius_m``,
+which leaves the robot's side a centimetre or two from a box once map cells, the pose
+and the steering's tracking have each had their error. With ``clearance_cost`` > 0 a
+move into a cell whose centre is ``d`` from the nearest occupied cell costs its length
+times ``1 + clearance_cost * s**2``, ``s = (preferred - d) / (preferred - inflation)``
+clipped to [0, 1] (``preferred`` = ``clearance_preferred_m``): paths keep to the middle
+of open floor and pass obstacles wide where there is room, and still take a narrow
+doorway when it is the only way (the costmap inflation of ROS navigation, as a cost).
+Path lengths and the goal's score are then these weighted lengths (metres plus the
+detour a tight passage is worth). The footprint counts
 as known free even when the map has no evidence there, because the camera never sees
 under the robot, and it is not a frontier itself; it also lets the search start when the
 robot stands in an inflated zone.
@@ -78,6 +89,10 @@ class FrontierParams:
     size_penalty_m : float >= 0, see the module docstring's score.
     frontier_adjacency : 4 or 8, which unknown neighbours make a free cell a frontier.
     turn_penalty_m_per_rad : float >= 0, see the module docstring's score.
+    clearance_preferred_m : float >= 0, centre distance from obstacles below which moves
+        cost more (module docstring); no effect unless above ``inflation_radius_m``.
+    clearance_cost : float >= 0, the extra cost of a move at ``inflation_radius_m``, as a
+        multiple of its length (0: plain shortest paths).
     exclude_radius_m : float >= 0, frontier cells within this distance of the robot are
         ignored: the camera cannot see the floor right beside the robot, so turning to
         look there never resolves them.
@@ -90,6 +105,8 @@ class FrontierParams:
     frontier_adjacency: int = 4
     exclude_radius_m: float = 0.0
     turn_penalty_m_per_rad: float = 0.0
+    clearance_preferred_m: float = 0.0
+    clearance_cost: float = 0.0
 
     def __post_init__(self) -> None:
         if not isinstance(self.min_cluster_cells, int) or self.min_cluster_cells < 1:
@@ -103,6 +120,8 @@ class FrontierParams:
             "size_penalty_m",
             "exclude_radius_m",
             "turn_penalty_m_per_rad",
+            "clearance_preferred_m",
+            "clearance_cost",
         ):
             value = getattr(self, name)
             if not (isinstance(value, int | float) and 0 <= value < math.inf):
@@ -125,7 +144,8 @@ class FrontierCluster:
     centroid_xy : (x, y) world metres, mean of its cells' centres (may lie off the cluster).
     representative_cell : (row, col) of its nearest reachable cell, or None if unreachable.
     representative_xy : (x, y) world metres of that cell's centre, or None.
-    path_length_m : float, path length to the representative cell (inf if unreachable).
+    path_length_m : float, (weighted) path length to the representative cell (inf if
+        unreachable).
     """
 
     index: int
@@ -153,7 +173,7 @@ class FrontierGoal:
     cluster_index : int, into `FrontierSearch.clusters`.
     cell : (row, col) world-grid cell to drive to.
     xy : (x, y) world metres of its centre.
-    path_length_m : float, octile path length from the robot's cell.
+    path_length_m : float, (weighted) octile path length from the robot's cell.
     score : float, see the module docstring.
     path_cells : (n, 2) int64 (row, col) from the robot's cell to ``cell``, inclusive.
     probe : the goal looks at an edge rather than a frontier (module docstring).
@@ -179,7 +199,7 @@ class FrontierSearch:
     goal : FrontierGoal, or None with ``reason``.
     reason : str, "" when there is a goal, else one of ``REASON_NO_FRONTIER``,
         ``REASON_NO_REACHABLE``, ``REASON_OUTSIDE_MAP``.
-    distance_m : (rows, cols) float64 path length from the robot's cell, inf where not
+    distance_m : (rows, cols) float64 (weighted) path length from the robot's cell, inf where not
         reachable (all inf when the robot is outside the map).
     parent : (rows * cols,) int64 predecessors of the paths behind ``distance_m``
         (`trace_path`; `path_to_point` reads them).
@@ -301,7 +321,7 @@ def frontier_mask(
 
 @numba.njit(cache=True, nogil=True)
 def _dijkstra(
-    traversable: NDArray[np.bool_], start: int, cell_m: float
+    traversable: NDArray[np.bool_], step_weight: NDArray[np.float64], start: int, cell_m: float
 ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     rows, cols = traversable.shape
     dist = np.full(rows * cols, np.inf)
@@ -326,9 +346,9 @@ def _dijkstra(
                 if dr != 0 and dc != 0:
                     if not (traversable[r, nc] and traversable[nr, c]):
                         continue
-                    nd = d + diagonal
+                    nd = d + diagonal * step_weight[nr, nc]
                 else:
-                    nd = d + cell_m
+                    nd = d + cell_m * step_weight[nr, nc]
                 n_idx = nr * cols + nc
                 if nd < dist[n_idx]:
                     dist[n_idx] = nd
@@ -338,7 +358,10 @@ def _dijkstra(
 
 
 def path_distances(
-    traversable: NDArray[np.bool_], start_cell: tuple[int, int], cell_m: float
+    traversable: NDArray[np.bool_],
+    start_cell: tuple[int, int],
+    cell_m: float,
+    step_weight: NDArray[np.float64] | None = None,
 ) -> tuple[NDArray[np.float64], NDArray[np.int64]]:
     """Octile shortest paths over traversable cells from ``start_cell`` (always allowed).
 
@@ -347,10 +370,12 @@ def path_distances(
     traversable : (rows, cols) bool
     start_cell : (row, col) on the raster.
     cell_m : float > 0, cell size.
+    step_weight : (rows, cols) float64 >= 1, a move into a cell costs its length times the
+        cell's weight (`clearance_weights`); None: all 1 (plain lengths).
 
     Returns
     -------
-    distance_m : (rows, cols) float64, inf where unreachable.
+    distance_m : (rows, cols) float64 weighted path length, inf where unreachable.
     parent : (rows * cols,) int64 flat index of each cell's predecessor, -1 for the start
         and unreached cells (see `trace_path`).
 
@@ -368,9 +393,45 @@ def path_distances(
         raise ValueError(f"start_cell: {start_cell} is outside the {rows}x{cols} raster")
     if not (math.isfinite(cell_m) and cell_m > 0):
         raise ValueError(f"cell_m: must be finite and > 0, got {cell_m}")
+    if step_weight is None:
+        weight = np.ones((rows, cols), dtype=np.float64)
+    else:
+        if step_weight.shape != traversable.shape:
+            raise ValueError(
+                f"step_weight: expected shape {traversable.shape}, got {step_weight.shape}"
+            )
+        weight = np.ascontiguousarray(step_weight, dtype=np.float64)
+        if not (np.isfinite(weight).all() and float(weight.min(initial=1.0)) >= 1.0):
+            raise ValueError("step_weight: every weight must be finite and >= 1")
     grid = np.ascontiguousarray(traversable, dtype=np.bool_)
-    dist, parent = _dijkstra(grid, int(row * cols + col), float(cell_m))
+    dist, parent = _dijkstra(grid, weight, int(row * cols + col), float(cell_m))
     return dist, parent
+
+
+def clearance_weights(
+    occupied: NDArray[np.bool_],
+    cell_m: float,
+    inflation_radius_m: float,
+    preferred_m: float,
+    cost: float,
+) -> NDArray[np.float64]:
+    """(rows, cols) float64 >= 1: the step weight of each cell (module docstring,
+    *Clearance*), from the distance of its centre to the nearest occupied cell's centre.
+
+    >>> w = clearance_weights(np.array([[True, False, False, False, False]]), 1.0, 1.0, 3.0, 2.0)
+    >>> w.round(3).tolist()
+    [[3.0, 3.0, 1.5, 1.0, 1.0]]
+    """
+    weight = np.ones(occupied.shape, dtype=np.float64)
+    span = preferred_m - inflation_radius_m
+    if cost <= 0 or span <= 0 or not occupied.any():
+        return weight
+    free = np.ascontiguousarray(~occupied, dtype=np.uint8)
+    # DIST_MASK_PRECISE: exact Euclidean distances (in cells) to the nearest zero.
+    distance_m = cv2.distanceTransform(free, cv2.DIST_L2, cv2.DIST_MASK_PRECISE) * cell_m
+    shortfall = np.clip((preferred_m - distance_m) / span, 0.0, 1.0)
+    weight += cost * shortfall**2
+    return weight
 
 
 def trace_path(parent: NDArray[np.int64], cols: int, cell: tuple[int, int]) -> NDArray[np.int64]:
@@ -426,11 +487,18 @@ def find_frontiers(
     frontier = frontier_mask(known, adjacency=params.frontier_adjacency, exclude=excluded)
     inflated = inflate_obstacles(occupied, params.inflation_radius_m / cell_m)
     traversable = ((cells == FREE) & ~inflated) | (footprint & ~occupied)
+    weight = clearance_weights(
+        occupied,
+        cell_m,
+        params.inflation_radius_m,
+        params.clearance_preferred_m,
+        params.clearance_cost,
+    )
 
     (row, col) = (int(v) for v in grid.cell_of(np.array([robot_xy]))[0])
     on_map = 0 <= row < grid.rows and 0 <= col < grid.cols
     if on_map:
-        distance, parent = path_distances(traversable, (row, col), cell_m)
+        distance, parent = path_distances(traversable, (row, col), cell_m, weight)
     else:
         distance = np.full(grid.shape, np.inf)
         parent = np.full(cells.size, -1, dtype=np.int64)

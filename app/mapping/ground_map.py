@@ -105,6 +105,8 @@ def frontier_params(mapping: MappingConfig) -> FrontierParams:
         exclude_radius_m=mapping.frontier_exclude_radius_m,
         size_penalty_m=mapping.frontier_size_penalty_m,
         turn_penalty_m_per_rad=mapping.frontier_turn_penalty_m_per_rad,
+        clearance_preferred_m=mapping.path_clearance_preferred_m,
+        clearance_cost=mapping.path_clearance_cost,
     )
 
 

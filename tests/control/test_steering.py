@@ -131,6 +131,30 @@ def test_slows_down_near_an_obstacle_and_stops_at_the_clearance() -> None:
     assert v_near == 0.0
 
 
+def test_turning_towards_a_free_heading_slows_for_what_stands_in_between() -> None:
+    """A box straight ahead, the goal 35 degrees left and free: the robot turns towards
+    it and, driving an arc from its own heading, must not run its front into the box; on
+    the same map without the box it drives on at full turn-weighted speed."""
+    goal = path_to(1.5 * math.cos(0.6), 1.5 * math.sin(0.6))
+    clear = steering().decide(free_map(), GRID, Pose2D(), goal)
+    cells = free_map()
+    x, y = GRID.cell_centers()
+    cells[(x > 0.45) & (x < 0.6) & (np.abs(y) < 0.1)] = OCCUPIED
+    boxed = steering().decide(cells, GRID, Pose2D(), goal)
+    assert clear.reason == boxed.reason == "goal"
+    assert clear.twist.v_m_s == pytest.approx(
+        SteeringConfig().cruise_speed_m_s * math.cos(0.6) ** 2
+    )
+    # The fan from 0 to 35 degrees ends at the grown box, 0.45 - 0.17 m ahead: within
+    # the clearance plus a fifth of the slow-down distance.
+    assert 0.0 < boxed.twist.v_m_s < 0.25 * clear.twist.v_m_s
+    assert boxed.twist.omega_rad_s == pytest.approx(clear.twist.omega_rad_s)
+    polar = boxed.polar
+    assert polar.range_sweeping_to(0.6) == pytest.approx(polar.range_towards(0.0))
+    assert polar.range_sweeping_to(-0.6) == pytest.approx(polar.range_towards(0.0))
+    assert polar.range_towards(0.6) > 1.0
+
+
 def test_closed_goal_direction_steers_through_the_open_window() -> None:
     cells = free_map()
     x, y = GRID.cell_centers()

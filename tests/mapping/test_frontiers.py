@@ -14,6 +14,7 @@ from app.mapping.frontiers import (
     REASON_NO_REACHABLE,
     REASON_OUTSIDE_MAP,
     FrontierParams,
+    clearance_weights,
     find_frontiers,
     frontier_mask,
     inflate_obstacles,
@@ -177,6 +178,78 @@ def test_path_distances_do_not_cut_corners() -> None:
     assert distance[1, 1] == pytest.approx(math.sqrt(2))
 
 
+def _path_clearance_m(cells: NDArray[np.int8], grid: GroundGrid, params: FrontierParams) -> float:
+    """The least distance from the goal path's cells to the box's cells (centres)."""
+    search = find_frontiers(cells, grid, centre(grid, 10, 1), params)
+    assert search.goal is not None
+    occupied = np.argwhere(cells[1:] == OCCUPIED) + np.array([1, 0])
+    path = search.goal.path_cells
+    gaps = np.hypot(*(path[:, None, :] - occupied[None, :, :]).transpose(2, 0, 1))
+    return float(gaps.min()) * grid.cell_m
+
+
+def test_paths_pass_obstacles_wide_where_there_is_room_and_still_take_a_narrow_door() -> None:
+    """A box stands between the robot (bottom left) and the only frontier (top right
+    corner). Shortest paths graze it at the inflation radius; with the clearance cost the
+    path keeps the preferred distance, and a door just wide enough stays open."""
+    room = """
+        ?????????????
+        .............
+        .............
+        .............
+        .............
+        .............
+        .....###.....
+        .....###.....
+        .............
+        .............
+        .............
+        .............
+        .............
+        """.replace(" ", "")
+    cells, grid = parse(room)
+    cells[0, :-1] = OCCUPIED  # only the top right corner is a frontier: the path goes
+    plain = FrontierParams(min_cluster_cells=1, inflation_radius_m=CELL, robot_radius_m=0.0)
+    wide = FrontierParams(
+        min_cluster_cells=1,
+        inflation_radius_m=CELL,
+        robot_radius_m=0.0,
+        clearance_preferred_m=3 * CELL,
+        clearance_cost=4.0,
+    )
+    # The inflated band covers one cell round the box: the shortest path runs just past it.
+    assert _path_clearance_m(cells, grid, plain) == pytest.approx(2 * CELL)
+    # Near the preferred three cells (a corner cut diagonally costs a tenth of a cell).
+    assert _path_clearance_m(cells, grid, wide) >= 2 * math.sqrt(2) * CELL
+
+    door = parse(
+        """
+        ?????
+        .....
+        ##.##
+        .....
+        .....
+        """.replace(" ", "")
+    )
+    narrow = FrontierParams(
+        min_cluster_cells=1, robot_radius_m=0.0, clearance_preferred_m=4 * CELL, clearance_cost=20.0
+    )
+    through = find_frontiers(*door, centre(door[1], 4, 2), narrow)
+    assert through.goal is not None and through.goal.cell[0] == 1
+
+
+def test_clearance_weights_are_one_far_away_and_grow_to_one_plus_the_cost() -> None:
+    occupied = np.zeros((1, 7), bool)
+    occupied[0, 0] = True
+    weights = clearance_weights(occupied, 0.5, 0.5, 2.0, 3.0)
+    # distances 0, 0.5, 1.0, 1.5, 2.0 ...: shortfall 1, 1, 2/3, 1/3, 0
+    assert weights[0].tolist() == pytest.approx([4.0, 4.0, 1 + 3 * 4 / 9, 1 + 3 / 9, 1, 1, 1])
+    assert np.all(clearance_weights(occupied, 0.5, 0.5, 0.5, 3.0) == 1.0)  # no span
+    assert np.all(clearance_weights(np.zeros((2, 2), bool), 0.5, 0.1, 2.0, 3.0) == 1.0)
+    with pytest.raises(ValueError, match="step_weight"):
+        path_distances(np.ones((2, 2), bool), (0, 0), 1.0, np.full((2, 2), 0.5))
+
+
 def test_bad_inputs_raise_clear_value_errors() -> None:
     cells, grid = parse(ROOM)
     robot = centre(grid, 7, 1)
@@ -197,6 +270,8 @@ def test_bad_inputs_raise_clear_value_errors() -> None:
         FrontierParams(min_cluster_cells=0)
     with pytest.raises(ValueError, match="inflation_radius_m"):
         FrontierParams(inflation_radius_m=-0.1)
+    with pytest.raises(ValueError, match="clearance_cost"):
+        FrontierParams(clearance_cost=-1.0)
     with pytest.raises(ValueError, match="frontier_adjacency"):
         FrontierParams(frontier_adjacency=6)
     with pytest.raises(ValueError, match="start_cell"):
