@@ -34,7 +34,13 @@ from app.mapping.occupancy import (
     UpdateSummary,
 )
 from app.mapping.scan_match import LocalizerParams, MatchParams, ScanLocalizer, view_bearings
-from app.perception.planar import ParallaxResult, PlanarParams, confirm_floor, view_homography
+from app.perception.planar import (
+    ParallaxResult,
+    PlanarParams,
+    confirm_floor,
+    floor_before_standing,
+    view_homography,
+)
 from app.perception.standing import horizon_rows, standing_across_horizon
 
 _NO_SECOND_MAP = np.empty((0, 0), dtype=np.uint16)
@@ -42,7 +48,8 @@ _NO_SECOND_MAP = np.empty((0, 0), dtype=np.uint16)
 PARALLAX_PERIOD_S = 0.2
 """The parallax test runs at most this often (~2-3 ms a frame, nogil)..."""
 PARALLAX_CARRY_S = 0.5
-"""...and its confirmed floor is carried to the frames between for at most this long."""
+"""...and its confirmed floor (and the floor it cut off behind what stands) is carried to
+the frames between for at most this long."""
 _STORED_VIEWS = 24
 """Earlier frames kept for the parallax test (grey, ~0.3 MB each)..."""
 _VIEW_STEP_M = 0.02
@@ -230,6 +237,9 @@ class GroundMapper:
         """Frames whose floor was tested by parallax (for the report)."""
         self._parallax_due_s = -math.inf
         self._confirmed: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
+        self._cut: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
+        """The colour floor the last parallax test found behind something standing (image
+        mask), where and when: carried, like ``_confirmed``, to the frames between."""
         grid = self.birdseye.grid
         self.localizer = (
             ScanLocalizer(
@@ -259,8 +269,12 @@ class GroundMapper:
         frame is fused (`MapUpdate.correction`). Not-floor pixels of ``unsure_mask``
         (same size as the mask) give no evidence: they count as unseen."""
         tested: ParallaxResult | None = None
+        cut_px: NDArray[np.bool_] | None = None
         if image is not None and self.parallax is not None:
             floor_mask, tested = self._confirm_by_parallax(floor_mask, image, T_world_robot, now_s)
+            cut_px = self._cut_behind_standing(floor_mask, tested, T_world_robot, now_s)
+            if cut_px is not None:
+                floor_mask = floor_mask & ~cut_px
         standing_px: NDArray[np.bool_] | None = None
         if image is not None and image.ndim == 3 and self.horizon_row is not None:
             standing_px = standing_across_horizon(floor_mask, image, self.horizon_row)
@@ -321,6 +335,10 @@ class GroundMapper:
             patch[standing] = NOT_FLOOR
         memory.drive_over(T_world_robot, self.mapping.robot_radius_m)
         corrected = memory.correct_patch(patch, index)
+        if cut_px is not None:
+            # Geometry over memory too: known floor behind a standing surface is out of
+            # sight, not floor seen, so the floor along those rays ends at its foot.
+            patch[birdseye_floor_patch(cut_px, self.birdseye) == FLOOR] = NOT_FLOOR
         summary = self.grid.update(patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot)
         return MapUpdate(patch, summary, corrected, correction, match_s)
 
@@ -371,6 +389,9 @@ class GroundMapper:
         if self._confirmed is not None:
             added, then, at_s = self._confirmed
             self._confirmed = (added, moved(then), at_s)
+        if self._cut is not None:
+            cut, then, at_s = self._cut
+            self._cut = (cut, moved(then), at_s)
 
     def snapshot(self) -> SavedMap:
         """A read-only copy of the map for saving (`app.mapping.map_files.save_map`); call
@@ -394,6 +415,48 @@ class GroundMapper:
         self.memory = memory
         self._views.clear()
         self._confirmed = None
+        self._cut = None
+
+    def _cut_behind_standing(
+        self,
+        floor_mask: NDArray[np.bool_],
+        tested: ParallaxResult | None,
+        pose: Pose2D,
+        now_s: float,
+    ) -> NDArray[np.bool_] | None:
+        """The part of ``floor_mask`` that lies behind something parallax saw standing
+        (`floor_before_standing`), from this frame's test or carried from the last one;
+        None when there is none."""
+        assert self.parallax is not None
+        here = (pose.x_m, pose.y_m, pose.theta_rad)
+        if tested is not None:
+            # Two pixels of the test's own (downscaled) resolution: one is never enough;
+            # inside the floor by more than half its matching window; spread over a 32nd
+            # of the width (2 degrees for a 60-degree camera) each way.
+            p = self.parallax
+            kept = floor_before_standing(
+                floor_mask,
+                tested.standing,
+                2 * p.downscale,
+                flat=tested.tested & ~tested.standing,
+                interior_px=(p.window_px // 2 + 1) * p.downscale,
+                spread_px=floor_mask.shape[1] // 32,
+            )
+            cut = floor_mask & ~kept
+            self._cut = (cut, here, now_s) if cut.any() else None
+            return cut if cut.any() else None
+        if self._cut is None or now_s - self._cut[2] > PARALLAX_CARRY_S:
+            return None
+        # Between tests: moved with the floor homography, exact at the surface's foot (on
+        # the floor) and off by its parallax above it, for a few frames at most.
+        cut, then, _ = self._cut
+        H = view_homography(self.calibration.H_ground_from_image, then, here)
+        h, w = floor_mask.shape
+        carried = cv2.warpPerspective(
+            cut.astype(np.uint8), H, (w, h), flags=cv2.INTER_NEAREST, borderValue=0
+        )
+        out = floor_mask & (carried > 0)
+        return out if out.any() else None
 
     def _confirm_by_parallax(
         self, floor_mask: NDArray[np.bool_], image: NDArray[np.uint8], pose: Pose2D, now_s: float

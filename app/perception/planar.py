@@ -16,6 +16,12 @@ stretch of ground with no evidence at all, and keeps the floor up to the last co
 pixel. A box's foot is on the floor (its junction confirms a pixel or two), its face gives
 nothing and its top edge stands up, so the walk stops at its foot.
 
+`floor_before_standing` is the test's other half: colour cannot tell a floor-coloured
+wall panel or box from the floor, but where parallax saw such a surface stand up inside
+the colour floor, the floor of that image column ends below it (a column of the image
+is a ray along the ground, and a ray ends at the first thing standing on it), so the map
+puts the obstacle at its foot and not, as the floor homography would, far behind it.
+
 `confirm_floor` runs the whole test at half resolution (OpenCV downsamples; both release
 the GIL) and its search is a numba kernel that holds no GIL either, so the mapping thread
 does not stall the others while it runs. It can also return what it found standing up
@@ -619,6 +625,93 @@ def confirm_floor(
         return result(floor_mask, standing, tested)
     extended = extend_floor(mask, on_floor, standing, distance, p)
     return result(_with_added(floor_mask, extended & ~mask, k), standing, tested)
+
+
+def floor_before_standing(
+    floor_mask: NDArray[np.bool_],
+    standing: NDArray[np.bool_],
+    min_standing_px: int,
+    *,
+    flat: NDArray[np.bool_] | None = None,
+    interior_px: int = 0,
+    spread_px: int = 0,
+) -> NDArray[np.bool_]:
+    """``floor_mask`` with the floor each column holds beyond something standing removed.
+
+    A column's cut row is its lowest pixel that parallax saw standing
+    (`ParallaxResult.standing`) at least ``interior_px`` inside the colour floor (a
+    surface the colour method took for floor; a standing pixel on the floor's edge is the
+    edge of something the mask already leaves out, and at the test's resolution half of
+    it lies on the floor), in columns with at least ``min_standing_px`` of them (one
+    stray pixel cuts nothing). Given ``flat`` (pixels the test found on the floor plane),
+    only standing pixels above a flat one of their column count: a surface stands on
+    floor, and a column without floor seen before it (an obstacle's corner at the image's
+    bottom edge) says nothing about where the floor ends. The columns within
+    ``spread_px`` of a cut take the lowest of their neighbours' cut rows if they hold one
+    such pixel of their own: parallax sees a surface only where its texture runs across
+    the epipolar lines, so its evidence on a panel or a box face comes in gaps.
+    The cut removes the run of floor pixels through the cut row, up to the first
+    not-floor pixel above it: floor seen past a gap (over a low box) is left alone.
+
+    Examples
+    --------
+    >>> floor = np.ones((5, 4), bool)
+    >>> floor[0, 0] = False
+    >>> standing = np.zeros((5, 4), bool)
+    >>> standing[[2, 3], 0] = True   # column 0: two standing pixels, the lowest in row 3
+    >>> standing[1, 1] = True        # column 1: one, too few
+    >>> floor_before_standing(floor, standing, 2).astype(int).tolist()
+    [[0, 1, 1, 1], [0, 1, 1, 1], [0, 1, 1, 1], [0, 1, 1, 1], [1, 1, 1, 1]]
+    >>> floor_before_standing(floor, standing, 2, spread_px=1).astype(int).tolist()
+    [[0, 0, 1, 1], [0, 0, 1, 1], [0, 0, 1, 1], [0, 0, 1, 1], [1, 1, 1, 1]]
+    """
+    if standing.shape != floor_mask.shape:
+        raise ValueError(f"standing {standing.shape} must match floor_mask {floor_mask.shape}")
+    inside = floor_mask
+    if interior_px > 0:
+        kernel = np.ones((2 * interior_px + 1, 2 * interior_px + 1), np.uint8)
+        # Outside the image is no floor: the matching window does not fit there either.
+        inside = cv2.erode(floor_mask.view(np.uint8), kernel, borderValue=0) > 0
+    on_floor = standing & inside
+    height = floor_mask.shape[0]
+    if flat is not None:
+        if flat.shape != floor_mask.shape:
+            raise ValueError(f"flat {flat.shape} must match floor_mask {floor_mask.shape}")
+        flat_in_floor = flat & floor_mask
+        lowest_flat = np.where(
+            flat_in_floor.any(axis=0), height - 1 - np.argmax(flat_in_floor[::-1], axis=0), -1
+        )
+        on_floor &= np.arange(height)[:, None] < lowest_flat[None, :]
+    count = on_floor.sum(axis=0)
+    cut = count >= max(1, min_standing_px)
+    if not cut.any():
+        return floor_mask
+    # The row each column's cut starts at (-1: none).
+    lowest = np.where(cut, height - 1 - np.argmax(on_floor[::-1], axis=0), -1)
+    if spread_px > 0:
+        # The largest row among the neighbours (a 1-D dilation; -1 shifted to 0), for the
+        # columns with some evidence of their own (none: the floor beside a box's edge).
+        kernel = np.ones((1, 2 * spread_px + 1), np.uint8)
+        shifted = (lowest + 1).astype(np.uint16)[None, :]
+        borrowed = cv2.dilate(shifted, kernel)[0].astype(np.int64) - 1
+        lowest = np.where(count > 0, borrowed, lowest)
+    cols = np.flatnonzero(lowest >= 0)
+    rows = lowest[cols]
+    # Not-floor pixels in rows 0..i of each column, and in rows 0..i-1: a pixel is in the
+    # cut row's run when no not-floor pixel lies between them.
+    gaps_through = np.cumsum(~floor_mask[:, cols], axis=0)
+    gaps_before = gaps_through - ~floor_mask[:, cols]
+    at_cut = gaps_through[rows, np.arange(cols.size)]
+    row_index = np.arange(height)[:, None]
+    in_run = (
+        floor_mask[:, cols]
+        & floor_mask[rows, cols][None, :]
+        & (row_index <= rows[None, :])
+        & (gaps_before == at_cut[None, :])
+    )
+    kept = floor_mask.copy()
+    kept[:, cols] &= ~in_run
+    return np.asarray(kept, dtype=np.bool_)
 
 
 def _small_gray(gray: NDArray[np.uint8], size: tuple[int, int]) -> NDArray[np.uint8]:

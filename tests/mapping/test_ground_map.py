@@ -212,3 +212,31 @@ def test_unsure_pixels_give_no_evidence_and_the_rest_fuses_as_without() -> None:
     near = grid.cell_of(np.array([[x, 0.0] for x in np.arange(0.3, 1.15, 0.05)]))
     for r, c in near:
         assert plain.grid.log_odds[r, c] == held_back.grid.log_odds[r, c]
+
+
+def test_a_floor_finished_panel_parallax_saw_standing_ends_the_floor_at_its_foot() -> None:
+    """The shipped world's wall panel with the floor's own finish (y = 0.05), driven at
+    head-on: the colour mask calls most of it floor and the panel is too low for the
+    horizon test, but parallax sees its planks stand up, so the floor of those columns
+    ends at the panel's foot and the clearance ahead is the panel's, on the tested frame
+    and on the next one (carried)."""
+    from app.runtime.stages import clearance_ahead_m
+
+    mapper, renderer, segmenter = sim_mapper(parallax_floor=True)
+    heading, foot_y, radius = -math.pi / 2 - 0.26, 0.05, mapper.mapping.robot_radius_m
+    reach = mapper.mapping.max_range_m
+    clearances = []
+    for k, distance in enumerate((0.62, 0.50, 0.49)):  # a 0.12 m baseline, then 1 cm on
+        pose = Pose2D(
+            1.97 - distance * math.cos(heading), foot_y - distance * math.sin(heading), heading
+        )
+        frame = renderer.render(pose)  # type: ignore[attr-defined]
+        mask = segmenter.segment(frame.image).floor_mask  # type: ignore[attr-defined]
+        assert (mask & ~frame.floor_mask).mean() > 0.1  # the mask takes the panel for floor
+        update = mapper.update(mask, pose, 0.05 * k, frame.image)
+        clearances.append(clearance_ahead_m(update.patch, mapper.birdseye.grid, radius, reach))
+    assert mapper.parallax_frames == 1
+    # Straight ahead the panel's foot is distance / cos(0.26) from the robot's centre.
+    for distance, clearance in zip((0.50, 0.49), clearances[1:], strict=True):
+        assert clearance == pytest.approx(distance / math.cos(0.26) - radius, abs=0.08)
+    assert clearances[0] > clearances[1] + 0.3  # before any test: the floor ran on

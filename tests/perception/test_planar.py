@@ -349,3 +349,47 @@ def test_the_search_holds_no_gil() -> None:
     """The mapping thread runs it while the others go on (app/jit.py compiles it)."""
     for kernel in (planar._parallax_search, planar._extend_columns):
         assert kernel.targetoptions.get("nogil") is True
+
+
+def test_the_floor_of_a_column_ends_below_what_stands_on_it() -> None:
+    floor = np.ones((6, 5), bool)
+    floor[0] = False  # the colour floor ends at row 1 anyway
+    standing = np.zeros((6, 5), bool)
+    standing[[1, 3], 0] = True  # column 0: two standing pixels, the lowest in row 3
+    standing[2, 2] = True  # column 2: a stray pixel
+    standing[4, 4] = True  # column 4: standing where the mask says no floor counts not
+    floor[4, 4] = False
+    standing[[1, 2], 4] = True
+    kept = planar.floor_before_standing(floor, standing, 2)
+    assert kept[:, 0].tolist() == [False] * 4 + [True] * 2
+    assert np.array_equal(kept[:, 1:4], floor[:, 1:4])  # one pixel cuts nothing
+    assert kept[:, 4].tolist() == [False, False, False, True, False, True]
+    standing[1, 1] = True  # column 1: one pixel of its own, beside column 0's cut
+    spread = planar.floor_before_standing(floor, standing, 2, spread_px=1)
+    assert spread[:, 1].tolist() == [False] * 4 + [True] * 2  # column 0's cut
+    assert np.array_equal(spread[:, 2], floor[:, 2])  # no cut within one column
+    assert np.array_equal(spread[:, 3], floor[:, 3])  # beside column 4, but no evidence
+    assert planar.floor_before_standing(floor, np.zeros_like(floor), 2) is floor
+    with pytest.raises(ValueError, match="match"):
+        planar.floor_before_standing(floor, standing[:, :3], 2)
+
+
+def test_a_cut_leaves_floor_seen_past_a_gap_and_ignores_the_floors_own_edge() -> None:
+    # One column, bottom up: floor, floor (standing), floor (standing), box, floor, floor.
+    floor = np.array([[1], [1], [0], [1], [1], [1]], bool)
+    standing = np.array([[0], [0], [0], [1], [1], [0]], bool)
+    kept = planar.floor_before_standing(floor, standing, 2)
+    assert kept[:, 0].tolist() == [True, True, False, False, False, True]
+    # Only what stands on floor the test saw flat counts: none seen below, no cut.
+    flat_below = np.array([[0], [0], [0], [0], [0], [1]], bool)
+    flat_above = np.array([[1], [0], [0], [0], [0], [0]], bool)
+    assert np.array_equal(planar.floor_before_standing(floor, standing, 2, flat=flat_below), kept)
+    assert planar.floor_before_standing(floor, standing, 2, flat=flat_above) is floor
+    # A box's outline: standing pixels on the floor's edge, beside what the mask leaves
+    # out, are no surface the mask took for floor.
+    wide = np.ones((9, 9), bool)
+    wide[:4, 3:6] = False  # the box
+    edge = np.zeros((9, 9), bool)
+    edge[:5, 2] = edge[:5, 6] = edge[4, 2:7] = True
+    assert np.array_equal(planar.floor_before_standing(wide, edge, 2, interior_px=1), wide)
+    assert not np.array_equal(planar.floor_before_standing(wide, edge, 2), wide)
