@@ -699,8 +699,9 @@ def floor_before_standing(
     rows = lowest[cols]
     # Not-floor pixels in rows 0..i of each column, and in rows 0..i-1: a pixel is in the
     # cut row's run when no not-floor pixel lies between them.
-    gaps_through = np.cumsum(~floor_mask[:, cols], axis=0)
-    gaps_before = gaps_through - ~floor_mask[:, cols]
+    not_floor = (~floor_mask[:, cols]).astype(np.int64)
+    gaps_through = np.cumsum(not_floor, axis=0)
+    gaps_before: NDArray[np.int64] = gaps_through - not_floor
     at_cut = gaps_through[rows, np.arange(cols.size)]
     row_index = np.arange(height)[:, None]
     in_run = (
