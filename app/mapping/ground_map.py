@@ -450,12 +450,7 @@ class GroundMapper:
         # Between tests: moved with the floor homography, exact at the surface's foot (on
         # the floor) and off by its parallax above it, for a few frames at most.
         cut, then, _ = self._cut
-        H = view_homography(self.calibration.H_ground_from_image, then, here)
-        h, w = floor_mask.shape
-        carried = cv2.warpPerspective(
-            cut.astype(np.uint8), H, (w, h), flags=cv2.INTER_NEAREST, borderValue=0
-        )
-        out = floor_mask & (carried > 0)
+        out = floor_mask & self._carried(cut, then, here)
         return out if out.any() else None
 
     def _confirm_by_parallax(
@@ -504,13 +499,23 @@ class GroundMapper:
             # Between tests, the last confirmed floor carries over exactly: it lies on the
             # floor plane, which the homography between the two poses maps.
             added, then, _ = self._confirmed
-            H = view_homography(self.calibration.H_ground_from_image, then, here)
-            h, w = floor_mask.shape
-            carried = cv2.warpPerspective(
-                added.astype(np.uint8), H, (w, h), flags=cv2.INTER_NEAREST, borderValue=0
-            )
-            return np.asarray(floor_mask | (carried > 0), dtype=np.bool_), None
+            return floor_mask | self._carried(added, then, here), None
         return floor_mask, None
+
+    def _carried(
+        self,
+        mask: NDArray[np.bool_],
+        then: tuple[float, float, float],
+        here: tuple[float, float, float],
+    ) -> NDArray[np.bool_]:
+        """A tested frame's image ``mask`` (taken at pose ``then``) as seen from
+        ``here``, through the floor homography between the two poses."""
+        H = view_homography(self.calibration.H_ground_from_image, then, here)
+        h, w = mask.shape
+        warped = cv2.warpPerspective(
+            mask.astype(np.uint8), H, (w, h), flags=cv2.INTER_NEAREST, borderValue=0
+        )
+        return np.asarray(warped > 0, dtype=np.bool_)
 
     def frontiers(self, T_world_robot: Pose2D) -> FrontierSearch:
         """Frontiers and the goal, with the goals in `given_up` treated as seen."""
