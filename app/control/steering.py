@@ -14,8 +14,8 @@
    forward speed falls with the heading error and with the free range over the fan of
    directions from straight ahead to the heading (the robot drives an arc through them;
    ranges end where its body would touch), from ``slow_down_m`` above the minimum
-   clearance down to zero at it. An open window whose range is already within the clearance leads
-   nowhere: the robot turns towards the goal instead, to look.
+   clearance down to zero at it. An open window whose range is already within the
+   clearance leads nowhere: the robot turns towards the goal instead, to look.
 5. Blocked ahead (the runtime says the safe zone in front is not floor): no forward
    motion, and a turn in place at ``turn_speed_rad_s`` towards the side with more free
    range, kept while the way ahead stays blocked, so the robot looks elsewhere.

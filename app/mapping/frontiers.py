@@ -11,7 +11,10 @@ and no corner cutting (a diagonal move needs both cells beside it traversable, s
 diagonal wall of single cells is not a door). Traversable cells are free cells farther
 than ``inflation_radius_m`` from every occupied cell (the robot's centre must stay that
 far from obstacles), plus the robot's *footprint*: the cells within ``robot_radius_m`` of
-its position (always including its own cell) that are not occupied.
+its position (always including its own cell) that are not occupied. The footprint counts
+as known free even when the map has no evidence there, because the camera never sees
+under the robot, and it is not a frontier itself; it also lets the search start when the
+robot stands in an inflated zone.
 
 **Clearance.** The shortest path hugs every obstacle at exactly ``inflation_radius_m``,
 which leaves the robot's side a centimetre or two from a box once map cells, the pose
@@ -22,10 +25,7 @@ clipped to [0, 1] (``preferred`` = ``clearance_preferred_m``): paths keep to the
 of open floor and pass obstacles wide where there is room, and still take a narrow
 doorway when it is the only way (the costmap inflation of ROS navigation, as a cost).
 Path lengths and the goal's score are then these weighted lengths (metres plus the
-detour a tight passage is worth). The footprint counts
-as known free even when the map has no evidence there, because the camera never sees
-under the robot, and it is not a frontier itself; it also lets the search start when the
-robot stands in an inflated zone.
+detour a tight passage is worth).
 
 Each kept cluster gets its *representative cell*: its reachable cell with the shortest
 path from the robot (ties: first in raster order), with that path's length. The **goal**
