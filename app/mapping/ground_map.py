@@ -27,16 +27,19 @@ from app.mapping.frontiers import (
 from app.mapping.ipm import BirdseyeMap, birdseye_floor_patch, build_birdseye_map
 from app.mapping.occupancy import (
     FREE,
+    PATCH_OCCUPIED,
     UNKNOWN,
     OccupancyGrid,
     OccupancyParams,
     SavedMap,
     UpdateSummary,
+    cast_rays,
 )
 from app.mapping.scan_match import LocalizerParams, MatchParams, ScanLocalizer, view_bearings
 from app.perception.planar import (
     ParallaxResult,
     PlanarParams,
+    align_reference_pose,
     confirm_floor,
     floor_before_standing,
     view_homography,
@@ -235,6 +238,8 @@ class GroundMapper:
         ] = deque(maxlen=_STORED_VIEWS)
         self.parallax_frames = 0
         """Frames whose floor was tested by parallax (for the report)."""
+        self.parallax_unaligned = 0
+        """Of those, the tests whose views' floors could not be aligned (for the report)."""
         self._parallax_due_s = -math.inf
         self._confirmed: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
         self._cut: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
@@ -331,7 +336,7 @@ class GroundMapper:
                 if image is not None and image.ndim == 3
                 else None
             )
-            memory.mark_standing(index[standing], standing_bgr)
+            memory.mark_standing(index[self.standing_feet(standing)], standing_bgr)
             patch[standing] = NOT_FLOOR
         memory.drive_over(T_world_robot, self.mapping.robot_radius_m)
         corrected = memory.correct_patch(patch, index)
@@ -341,6 +346,21 @@ class GroundMapper:
             patch[birdseye_floor_patch(cut_px, self.birdseye) == FLOOR] = NOT_FLOOR
         summary = self.grid.update(patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot)
         return MapUpdate(patch, summary, corrected, correction, match_s)
+
+    def standing_feet(self, standing: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """Of the bird's-eye patch cells ``standing`` (what parallax or the horizon saw
+        standing, projected through the floor homography), those where it meets the
+        floor: along each ray from the camera, the standing cells within the obstacle
+        band of the first one, as the occupancy update finds an obstacle's foot. Only
+        the foot stands where the floor homography puts it; the rest of a standing
+        thing lands behind it, in a ray across the floor beyond (a table leg's would
+        cross the room), and must not unconfirm that floor or hide its edges from
+        the frontier search's probes."""
+        alone = np.where(self.birdseye.visible, FLOOR, UNSEEN).astype(np.uint8)
+        alone[standing] = NOT_FLOOR
+        table = self.grid.polar_table(self.birdseye.grid, self.camera_xy_robot)
+        labels = cast_rays(alone, table, obstacle_band_m=self.grid.params.obstacle_band_m)
+        return np.asarray(labels == PATCH_OCCUPIED, dtype=np.bool_)
 
     def _localize(
         self,
@@ -481,13 +501,22 @@ class GroundMapper:
             self._views.append((gray, here, cam))
         if best is not None and gray.shape == best[0].shape and now_s >= self._parallax_due_s:
             self._parallax_due_s = now_s + PARALLAX_PERIOD_S
+            # Odometry's relative pose, checked against the floor both views see: wheel
+            # slip alone would make fine floor textures stand up (`align_reference_pose`).
+            # Where the floor cannot be aligned (too plain, or a floor-coloured panel
+            # fills the view) the test runs on odometry: what stands must still be seen.
+            ref_pose = align_reference_pose(
+                gray, best[0], floor_mask, self.calibration.H_ground_from_image, best[1], here
+            )
+            if ref_pose is None:
+                self.parallax_unaligned += 1
             self.parallax_frames += 1
             result = confirm_floor(
                 floor_mask,
                 gray,
                 best[0],
                 self.calibration.H_ground_from_image,
-                best[1],
+                best[1] if ref_pose is None else ref_pose,
                 here,
                 self.camera_xy_robot,
                 self.parallax,

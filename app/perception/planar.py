@@ -34,6 +34,7 @@ Pure functions on numpy arrays. Frames: ``H_ground_from_image`` maps undistorted
 
 from __future__ import annotations
 
+import contextlib
 import math
 from dataclasses import dataclass
 from typing import Literal, overload
@@ -481,6 +482,205 @@ def _extend_columns(
 def _rigid(x_m: float, y_m: float, theta_rad: float) -> NDArray[np.float64]:
     c, s = math.cos(theta_rad), math.sin(theta_rad)
     return np.array([[c, -s, x_m], [s, c, y_m], [0.0, 0.0, 1.0]])
+
+
+@dataclass(frozen=True)
+class AlignParams:
+    """The floor alignment of `align_reference_pose` (see there).
+
+    Attributes
+    ----------
+    cell_m : side of the bird's-eye raster's cells the views are compared on (the
+        camera's own footprint on the floor a metre ahead).
+    near_m, far_m, half_width_m : the raster's extent ahead of the robot and to each side.
+    texture_sigma_cells : what is smoother than this (Gaussian sigma, cells) is shading,
+        not texture, and is taken out before comparing.
+    turn_steps : headings tried over +-``max_turn_rad`` before the fine alignment.
+    max_shift_m, max_turn_rad : the largest correction believed. Wheel slip errs by a
+        degree or two in heading between two frames a hand's width apart, but by
+        millimetres in position; a larger shift means the alignment slid along a floor
+        with too little texture across it.
+    min_correlation : the aligned textures' correlation (ECC's) below which the floor
+        gave too little texture to align on.
+    min_cells : raster cells on the floor that both views see, at least.
+    """
+
+    cell_m: float = 0.01
+    near_m: float = 0.25
+    far_m: float = 1.5
+    half_width_m: float = 0.6
+    texture_sigma_cells: float = 4.0
+    turn_steps: int = 13
+    max_shift_m: float = 0.02
+    max_turn_rad: float = 0.06
+    min_correlation: float = 0.6
+    min_cells: int = 500
+
+
+ECC_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 15, 1e-3)
+"""The fine alignment stops after 15 iterations or when the correlation gains < 0.001
+(from the coarse search's heading it converges in a few; more changed nothing on
+scripts/eval_parallax.py)."""
+
+
+def align_reference_pose(
+    gray_cur: NDArray[np.uint8],
+    gray_ref: NDArray[np.uint8],
+    floor_mask: NDArray[np.bool_],
+    H_ground_from_image: NDArray[np.float64],
+    T_world_ref: tuple[float, float, float],
+    T_world_cur: tuple[float, float, float],
+    params: AlignParams | None = None,
+) -> tuple[float, float, float] | None:
+    """The reference view's pose corrected so that the two views' floors line up: the
+    parallax test's input, checked against the images.
+
+    The parallax test warps one view onto the other through the floor plane and the
+    odometry between them. Wheel slip makes that odometry a degree or two wrong in
+    heading, which moves the floor a metre ahead by 2-3 cm; a fine texture (carpet, a
+    rug, tiles) then no longer matches itself and half the floor "stands up". So both
+    views are first projected onto the floor ahead of the current robot (a bird's-eye
+    raster of ``cell_m`` cells), kept only where the current view's colour floor is and
+    both views see it, with their smooth shading taken out (the light and the lens's
+    vignetting differ between the views). The heading is searched coarsely, on a raster
+    of twice the cell, and finely; then OpenCV's ECC (enhanced correlation coefficient)
+    refines the turn and the shift in the floor plane together (where it cannot, along
+    a texture of parallel lines, the heading stands alone). The current pose is kept;
+    the reference's is moved.
+
+    Returns the corrected ``T_world_ref`` (x_m, y_m, theta_rad), or None when the floor
+    cannot be aligned: fewer than ``min_cells`` usable cells, too little texture
+    (correlation below ``min_correlation``), or a correction beyond ``max_turn_rad`` /
+    ``max_shift_m`` (what fills the view is not the floor: a floor-coloured panel).
+    """
+    p = params if params is not None else AlignParams()
+    h, w = floor_mask.shape
+    if gray_cur.shape != (h, w) or gray_ref.shape != (h, w):
+        raise ValueError(
+            f"gray_cur {gray_cur.shape} and gray_ref {gray_ref.shape} must match "
+            f"floor_mask {floor_mask.shape}"
+        )
+    G_inv = np.linalg.inv(np.asarray(H_ground_from_image, dtype=np.float64))
+    T_ref_cur = np.linalg.inv(_rigid(*T_world_ref)) @ _rigid(*T_world_cur)
+    linear = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
+    nearest = cv2.INTER_NEAREST | cv2.WARP_INVERSE_MAP
+
+    def raster(cell_m: float, pad_m: float = 0.0) -> tuple[NDArray[np.float64], tuple[int, int]]:
+        """M_ground_from_raster (col, row, 1) -> the current robot frame's floor (row 0
+        far, column 0 on the left) and the raster's (cols, rows), ``pad_m`` larger on
+        every side."""
+        far, left = p.far_m + pad_m, p.half_width_m + pad_m
+        M = np.array([[0.0, -cell_m, far], [-cell_m, 0.0, left], [0.0, 0.0, 1.0]])
+        size = (round(2 * left / cell_m), round((far - p.near_m + pad_m) / cell_m))
+        return M, size
+
+    def texture(
+        gray: NDArray[np.uint8], H_image_from_raster: NDArray[np.float64], size: tuple[int, int]
+    ) -> NDArray[np.float32]:
+        """``gray`` on a raster, less what is smoother than ``texture_sigma_cells``
+        of the fine raster."""
+        image = cv2.warpPerspective(gray, H_image_from_raster, size, flags=linear)
+        image = image.astype(np.float32)
+        sigma = p.texture_sigma_cells * fine_size[0] / size[0]
+        return np.asarray(image - cv2.GaussianBlur(image, (0, 0), sigma), np.float32)
+
+    def usable(M: NDArray[np.float64], size: tuple[int, int]) -> NDArray[np.bool_]:
+        """Cells on the current colour floor that the reference sees too, away from
+        the floor's edges (an edge is no floor texture)."""
+        floor = cv2.warpPerspective(floor_mask.view(np.uint8), G_inv @ M, size, flags=nearest)
+        seen_ref = cv2.warpPerspective(
+            np.ones((h, w), np.uint8), G_inv @ T_ref_cur @ M, size, flags=nearest
+        )
+        margin = 9 if size == fine_size else 5
+        kernel = np.ones((margin, margin), np.uint8)
+        both = np.asarray(floor, np.uint8) & np.asarray(seen_ref, np.uint8)
+        return np.asarray(cv2.erode(both, kernel, borderValue=0) > 0, np.bool_)
+
+    def turned(turn_rad: float) -> NDArray[np.float64]:
+        """T_ref_cur with the reference robot turned by ``turn_rad`` more."""
+        return np.asarray(_rigid(0.0, 0.0, -turn_rad) @ T_ref_cur, dtype=np.float64)
+
+    class Scale:
+        """Both views' textures on the raster of one cell size. The reference is
+        projected once, on a raster padded by the largest turn's reach, and turned by
+        moving that raster (a rigid motion of the floor is an affine map of it)."""
+
+        def __init__(self, cell_m: float) -> None:
+            self.M, self.size = raster(cell_m)
+            self.valid = usable(self.M, self.size)
+            pad_m = p.max_turn_rad * math.hypot(p.far_m, p.half_width_m) + 2 * cell_m
+            self.M_pad, size_pad = raster(cell_m, pad_m)
+            self.ref = texture(gray_ref, G_inv @ T_ref_cur @ self.M_pad, size_pad)
+            self.cur = texture(gray_cur, G_inv @ self.M, self.size)
+
+        def ref_turned(self, turn_rad: float) -> NDArray[np.float32]:
+            A = np.linalg.inv(self.M_pad) @ np.linalg.inv(T_ref_cur) @ turned(turn_rad) @ self.M
+            return np.asarray(cv2.warpAffine(self.ref, A[:2], self.size, flags=linear), np.float32)
+
+        def best_heading(self, turns: NDArray[np.float64]) -> tuple[float, float]:
+            """Of ``turns``, the one whose reference texture correlates best with the
+            current one over the usable cells, and that correlation."""
+            cur_values = self.cur[self.valid]
+            cur_values = cur_values - cur_values.mean()
+            cur_norm = float(np.linalg.norm(cur_values)) + 1e-6
+            best = (0.0, -math.inf)
+            for turn in turns:
+                values = self.ref_turned(float(turn))[self.valid]
+                values -= values.mean()
+                norm = cur_norm * (float(np.linalg.norm(values)) + 1e-6)
+                score = float(cur_values @ values) / norm
+                if score > best[1]:
+                    best = (float(turn), score)
+            return best
+
+    fine_size = raster(p.cell_m)[1]
+    fine = Scale(p.cell_m)
+    if int(np.count_nonzero(fine.valid)) < p.min_cells:
+        return None
+    # 1. The heading, coarsely, on a raster of twice the cell (a degree moves the floor
+    # a metre ahead by nearly two fine cells, beyond where ECC reliably converges from),
+    # 2. then finely, between the coarse step's neighbours.
+    coarse = Scale(2 * p.cell_m)
+    if not coarse.valid.any():
+        return None
+    turns = np.linspace(-p.max_turn_rad, p.max_turn_rad, p.turn_steps)
+    best_turn, _ = coarse.best_heading(turns)
+    step = float(turns[1] - turns[0]) if turns.size > 1 else 0.0
+    best_turn, correlation = fine.best_heading(best_turn + np.linspace(-step / 2, step / 2, 7))
+    # 3. Turn and shift together with ECC, from there. Along a texture of parallel lines
+    # (wood grain) the shift is undetermined and ECC diverges: the heading stands alone.
+    W: NDArray[np.float32] = np.eye(2, 3, dtype=np.float32)
+    with contextlib.suppress(cv2.error):
+        correlation, found = cv2.findTransformECC(
+            fine.cur,
+            fine.ref_turned(best_turn),
+            W.copy(),
+            cv2.MOTION_EUCLIDEAN,
+            ECC_CRITERIA,
+            fine.valid.view(np.uint8),
+            5,
+        )
+        W = np.asarray(found, np.float32)
+    if not correlation >= p.min_correlation:
+        return None
+    T_ref_cur = turned(best_turn)
+    M_fine = fine.M
+    # ref(W q) ~ cur(q): the floor point M q of the current robot frame is the point
+    # T_ref_cur M W q of the reference's, so the true T_ref_cur is T_ref_cur M W M^-1.
+    W3 = np.vstack([np.asarray(W, np.float64), [0.0, 0.0, 1.0]])
+    correction = M_fine @ W3 @ np.linalg.inv(M_fine)
+    turn = best_turn + math.atan2(correction[1, 0], correction[0, 0])
+    # The shift that matters: where the correction moves the middle of the raster.
+    middle = np.array([(p.near_m + p.far_m) / 2, 0.0, 1.0])
+    shift = float(np.hypot(*(correction @ middle - middle)[:2]))
+    if abs(turn) > p.max_turn_rad or shift > p.max_shift_m:
+        return None
+    T_world_ref_aligned = _rigid(*T_world_cur) @ np.linalg.inv(T_ref_cur @ correction)
+    return (
+        float(T_world_ref_aligned[0, 2]),
+        float(T_world_ref_aligned[1, 2]),
+        float(math.atan2(T_world_ref_aligned[1, 0], T_world_ref_aligned[0, 0])),
+    )
 
 
 @dataclass(frozen=True)

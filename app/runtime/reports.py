@@ -196,6 +196,8 @@ def report(rt: Runtime) -> dict[str, Any]:
             "appearances": len(mapper.memory.appearances()),
             "unlearned": mapper.memory.unlearned,
             "standing_by_horizon_frames": mapper.standing_frames,
+            "parallax_tests": mapper.parallax_frames,
+            "parallax_unaligned": mapper.parallax_unaligned,
             "second_passes": counters.learned_floor_passes,
             "second_passes_adding_floor": counters.learned_floor_passes_adding,
             "second_pass_share": round(

@@ -393,3 +393,49 @@ def test_a_cut_leaves_floor_seen_past_a_gap_and_ignores_the_floors_own_edge() ->
     edge[:5, 2] = edge[:5, 6] = edge[4, 2:7] = True
     assert np.array_equal(planar.floor_before_standing(wide, edge, 2, interior_px=1), wide)
     assert not np.array_equal(planar.floor_before_standing(wide, edge, 2), wide)
+
+
+def standing_share(result: planar.ParallaxResult, zone: np.ndarray) -> float:
+    return float((result.standing & zone).sum() / max(1, (result.tested & zone).sum()))
+
+
+def test_alignment_recovers_the_reference_pose_wheel_slip_got_wrong(
+    synthetic: Synthetic,
+) -> None:
+    # Odometry believes the reference view 1.5 degrees and 4 mm off: wheel slip in a
+    # turn. Uncorrected, the textured floor stands up; aligned, it is floor again.
+    view, colour, _ = synthetic
+    ref = synthetic_view(REF_POSE)
+    slipped = (REF_POSE[0] + 0.004, REF_POSE[1], REF_POSE[2] + math.radians(1.5))
+    # The colour method's floor as it would be on this texture: all of it, up to the box.
+    zone = open_floor(view, colour)
+    floor = colour | zone
+    aligned = planar.align_reference_pose(view.gray, ref.gray, floor, G, slipped, CUR_POSE)
+    assert aligned is not None
+    assert math.hypot(aligned[0] - REF_POSE[0], aligned[1] - REF_POSE[1]) < 0.002
+    assert abs(aligned[2] - REF_POSE[2]) < math.radians(0.1)
+
+    def test(ref_pose: tuple[float, float, float]) -> planar.ParallaxResult:
+        result = planar.confirm_floor(
+            colour, view.gray, ref.gray, G, ref_pose, CUR_POSE, CAMERA_XY, return_standing=True
+        )
+        assert isinstance(result, planar.ParallaxResult)
+        return result
+
+    assert standing_share(test(slipped), zone) > 0.3
+    assert standing_share(test(aligned), zone) <= 0.02
+
+
+def test_a_floor_without_texture_is_not_aligned_and_shapes_are_checked() -> None:
+    rng = np.random.default_rng(0)
+    h, w = MODEL.height_px, MODEL.width_px
+    # Sensor noise alone, on a plain floor: nothing to align on.
+    plain = [np.clip(120 + rng.normal(0, 2, (h, w)), 0, 255).astype(np.uint8) for _ in "ab"]
+    floor = np.zeros((h, w), bool)
+    floor[COLOUR_TOP_ROW:] = True
+    assert planar.align_reference_pose(plain[0], plain[1], floor, G, REF_POSE, CUR_POSE) is None
+    # No floor in view: nothing either.
+    nothing = np.zeros((h, w), bool)
+    assert planar.align_reference_pose(plain[0], plain[1], nothing, G, REF_POSE, CUR_POSE) is None
+    with pytest.raises(ValueError, match="must match"):
+        planar.align_reference_pose(plain[0][:-1], plain[1], floor, G, REF_POSE, CUR_POSE)
