@@ -45,12 +45,9 @@ threshold) ends the floor in every frame, and the map keeps its edge as a wall: 
 search then finds no reachable frontier although the home goes on. Given ``probe_cells``
 (occupied cells that geometry has not seen standing, from the caller), the search, when
 no frontier is reachable, sends the robot to look at such an edge: the *probe targets*
-are probe cells with an unknown 4-neighbour (an edge with nothing known behind it), or
-with both reachable cells and free, traversable but unreachable ones within
-``inflation_radius_m`` + two cells (an edge the camera saw floor beyond, which no wall
-allows), in 8-connected groups of at least ``min_cluster_cells``; the goal is the
-reachable cell nearest by path within ``inflation_radius_m`` + two cells of a target.
-Driving straight
+are probe cells with an unknown 4-neighbour (an edge with nothing known behind it), in
+8-connected groups of at least ``min_cluster_cells``; the goal is the reachable cell
+nearest by path within ``inflation_radius_m`` + two cells of a target. Driving straight
 at it gives the motion-parallax test its baseline: a flat edge becomes known floor (and
 its colour learned), a standing one is marked so, and the caller leaves it out of
 ``probe_cells`` from then on. The goal's ``probe`` is True.
@@ -547,7 +544,7 @@ def find_frontiers(
         probe = (
             None
             if probe_cells is None
-            else _probe_goal(cells, grid, probe_cells, traversable, distance, parent, params)
+            else _probe_goal(cells, grid, probe_cells, distance, parent, params)
         )
         if probe is not None:
             return result(probe, "")
@@ -579,7 +576,6 @@ def _probe_goal(
     cells: NDArray[np.int8],
     grid: GroundGrid,
     probe_cells: NDArray[np.bool_],
-    traversable: NDArray[np.bool_],
     distance: NDArray[np.float64],
     parent: NDArray[np.int64],
     params: FrontierParams,
@@ -591,13 +587,7 @@ def _probe_goal(
     unknown = np.pad(cells == UNKNOWN, 1, constant_values=False)
     cols = cells.shape[1]
     behind = unknown[:-2, 1:-1] | unknown[2:, 1:-1] | unknown[1:-1, :-2] | unknown[1:-1, 2:]
-    reach_cells = params.inflation_radius_m / grid.cell_m + 2.0
-    # An edge with floor seen beyond it that the robot cannot reach: a wall hides what is
-    # behind it, so the camera looked across this one (a rug's edge, a threshold).
-    reachable = np.isfinite(distance)
-    cut_off = traversable & ~reachable
-    across = inflate_obstacles(reachable, reach_cells) & inflate_obstacles(cut_off, reach_cells)
-    targets = edge & (behind | across)
+    targets = edge & behind
     labels, n_labels = ndimage.label(targets, structure=np.ones((3, 3), dtype=bool))
     if n_labels == 0:
         return None
@@ -607,6 +597,7 @@ def _probe_goal(
     targets = kept[labels]
     if not targets.any():
         return None
+    reach_cells = params.inflation_radius_m / grid.cell_m + 2.0
     near = inflate_obstacles(targets, reach_cells)
     # Not where the robot stands: driving there gives no view of the edge.
     candidates = near & np.isfinite(distance) & (distance >= params.exclude_radius_m)

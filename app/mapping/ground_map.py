@@ -240,8 +240,6 @@ class GroundMapper:
         """Frames whose floor was tested by parallax (for the report)."""
         self.parallax_unaligned = 0
         """Of those, the tests whose views' floors could not be aligned (for the report)."""
-        self._tested_aligned = False
-        """Whether the last test's views were aligned (`align_reference_pose`)."""
         self._parallax_due_s = -math.inf
         self._confirmed: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
         self._cut: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
@@ -324,11 +322,8 @@ class GroundMapper:
         # longer known floor (a textureless face can pass parallax as flat) and its
         # colour is unlearned.
         standing_image = standing_px
-        if tested is not None and self._tested_aligned:
-            # What parallax found flat is known floor from now on. (A test on odometry
-            # alone, whose views could not be aligned, is trusted for this frame's
-            # floor and for the cut behind what stands, not for the memory: pose error
-            # makes fine floor textures stand up.)
+        if tested is not None:
+            # What parallax found flat is known floor from now on.
             flat = tested.floor & tested.tested & ~tested.standing
             memory.confirm_cells(index[birdseye_floor_patch(flat, self.birdseye) == FLOOR])
             standing_image = (
@@ -513,7 +508,6 @@ class GroundMapper:
             ref_pose = align_reference_pose(
                 gray, best[0], floor_mask, self.calibration.H_ground_from_image, best[1], here
             )
-            self._tested_aligned = ref_pose is not None
             if ref_pose is None:
                 self.parallax_unaligned += 1
             self.parallax_frames += 1
