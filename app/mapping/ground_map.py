@@ -27,13 +27,11 @@ from app.mapping.frontiers import (
 from app.mapping.ipm import BirdseyeMap, birdseye_floor_patch, build_birdseye_map
 from app.mapping.occupancy import (
     FREE,
-    PATCH_OCCUPIED,
     UNKNOWN,
     OccupancyGrid,
     OccupancyParams,
     SavedMap,
     UpdateSummary,
-    cast_rays,
 )
 from app.mapping.scan_match import LocalizerParams, MatchParams, ScanLocalizer, view_bearings
 from app.perception.planar import (
@@ -336,7 +334,7 @@ class GroundMapper:
                 if image is not None and image.ndim == 3
                 else None
             )
-            memory.mark_standing(index[self.standing_feet(standing)], standing_bgr)
+            memory.mark_standing(index[standing], standing_bgr)
             patch[standing] = NOT_FLOOR
         memory.drive_over(T_world_robot, self.mapping.robot_radius_m)
         corrected = memory.correct_patch(patch, index)
@@ -346,21 +344,6 @@ class GroundMapper:
             patch[birdseye_floor_patch(cut_px, self.birdseye) == FLOOR] = NOT_FLOOR
         summary = self.grid.update(patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot)
         return MapUpdate(patch, summary, corrected, correction, match_s)
-
-    def standing_feet(self, standing: NDArray[np.bool_]) -> NDArray[np.bool_]:
-        """Of the bird's-eye patch cells ``standing`` (what parallax or the horizon saw
-        standing, projected through the floor homography), those where it meets the
-        floor: along each ray from the camera, the standing cells within the obstacle
-        band of the first one, as the occupancy update finds an obstacle's foot. Only
-        the foot stands where the floor homography puts it; the rest of a standing
-        thing lands behind it, in a ray across the floor beyond (a table leg's would
-        cross the room), and must not unconfirm that floor or hide its edges from
-        the frontier search's probes."""
-        alone = np.where(self.birdseye.visible, FLOOR, UNSEEN).astype(np.uint8)
-        alone[standing] = NOT_FLOOR
-        table = self.grid.polar_table(self.birdseye.grid, self.camera_xy_robot)
-        labels = cast_rays(alone, table, obstacle_band_m=self.grid.params.obstacle_band_m)
-        return np.asarray(labels == PATCH_OCCUPIED, dtype=np.bool_)
 
     def _localize(
         self,

@@ -240,24 +240,3 @@ def test_a_floor_finished_panel_parallax_saw_standing_ends_the_floor_at_its_foot
     for distance, clearance in zip((0.50, 0.49), clearances[1:], strict=True):
         assert clearance == pytest.approx(distance / math.cos(0.26) - radius, abs=0.08)
     assert clearances[0] > clearances[1] + 0.3  # before any test: the floor ran on
-
-
-def test_only_the_foot_of_what_stands_is_marked_standing() -> None:
-    # A table leg 1.0 m ahead, seen standing by parallax: through the floor homography
-    # its pixels land on a ray from 1.0 m to the end of the view. A box's face 0.6 m
-    # ahead and to the left lands on its own wedge of rays behind it.
-    mapper = make_mapper()
-    assert mapper.camera_xy_robot == (0.0, 0.0)
-    grid = mapper.birdseye.grid
-    x, y = grid.cell_centers()
-    visible = mapper.birdseye.visible
-    bearing = np.arctan2(y, x)
-    leg = visible & (np.abs(y) <= 0.02) & (x >= 1.0)
-    box = visible & (bearing >= math.atan2(0.15, 0.6)) & (bearing <= math.atan2(0.3, 0.6))
-    box &= x >= 0.6
-    feet = mapper.standing_feet(leg | box)
-    band = mapper.grid.params.obstacle_band_m + 2 * grid.cell_m
-    assert feet[leg].any() and feet[box].any()
-    assert x[feet & leg].max() <= 1.0 + band
-    assert x[feet & box].max() <= 0.6 + band
-    assert not (feet & ~(leg | box)).any()
