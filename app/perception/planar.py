@@ -22,6 +22,10 @@ the colour floor, the floor of that image column ends below it (a column of the 
 is a ray along the ground, and a ray ends at the first thing standing on it), so the map
 puts the obstacle at its foot and not, as the floor homography would, far behind it.
 
+The test needs the relative pose of the two views to a fraction of a degree, which
+wheel odometry does not give (slip errs by a degree or two between frames a hand's
+width apart): `align_reference_pose` first lines up the floor both views see.
+
 `confirm_floor` runs the whole test at half resolution (OpenCV downsamples; both release
 the GIL) and its search is a numba kernel that holds no GIL either, so the mapping thread
 does not stall the others while it runs. It can also return what it found standing up
@@ -519,8 +523,8 @@ class AlignParams:
 
 ECC_CRITERIA = (cv2.TERM_CRITERIA_COUNT | cv2.TERM_CRITERIA_EPS, 15, 1e-3)
 """The fine alignment stops after 15 iterations or when the correlation gains < 0.001
-(from the coarse search's heading it converges in a few; more changed nothing on
-scripts/eval_parallax.py)."""
+(from the heading search's result it converges in a few; 40 changed nothing on
+scripts/eval_alignment.py but the time)."""
 
 
 def align_reference_pose(
@@ -663,19 +667,19 @@ def align_reference_pose(
         W = np.asarray(found, np.float32)
     if not correlation >= p.min_correlation:
         return None
-    T_ref_cur = turned(best_turn)
-    M_fine = fine.M
     # ref(W q) ~ cur(q): the floor point M q of the current robot frame is the point
-    # T_ref_cur M W q of the reference's, so the true T_ref_cur is T_ref_cur M W M^-1.
+    # T M W q of the reference's (T: T_ref_cur turned by the heading found), so the true
+    # T_ref_cur is T M W M^-1.
     W3 = np.vstack([np.asarray(W, np.float64), [0.0, 0.0, 1.0]])
-    correction = M_fine @ W3 @ np.linalg.inv(M_fine)
+    correction = fine.M @ W3 @ np.linalg.inv(fine.M)
     turn = best_turn + math.atan2(correction[1, 0], correction[0, 0])
     # The shift that matters: where the correction moves the middle of the raster.
     middle = np.array([(p.near_m + p.far_m) / 2, 0.0, 1.0])
     shift = float(np.hypot(*(correction @ middle - middle)[:2]))
     if abs(turn) > p.max_turn_rad or shift > p.max_shift_m:
         return None
-    T_world_ref_aligned = _rigid(*T_world_cur) @ np.linalg.inv(T_ref_cur @ correction)
+    T_ref_cur_aligned = turned(best_turn) @ correction
+    T_world_ref_aligned = _rigid(*T_world_cur) @ np.linalg.inv(T_ref_cur_aligned)
     return (
         float(T_world_ref_aligned[0, 2]),
         float(T_world_ref_aligned[1, 2]),
