@@ -488,6 +488,19 @@ def _rigid(x_m: float, y_m: float, theta_rad: float) -> NDArray[np.float64]:
     return np.array([[c, -s, x_m], [s, c, y_m], [0.0, 0.0, 1.0]])
 
 
+def _check_views(
+    floor_mask: NDArray[np.bool_], gray_cur: NDArray[np.uint8], gray_ref: NDArray[np.uint8]
+) -> tuple[int, int]:
+    """(h, w) of ``floor_mask``, which both grey views must share (else ValueError)."""
+    h, w = floor_mask.shape
+    if gray_cur.shape != (h, w) or gray_ref.shape != (h, w):
+        raise ValueError(
+            f"gray_cur {gray_cur.shape} and gray_ref {gray_ref.shape} must match "
+            f"floor_mask {floor_mask.shape}"
+        )
+    return h, w
+
+
 @dataclass(frozen=True)
 class AlignParams:
     """The floor alignment of `align_reference_pose` (see there).
@@ -558,12 +571,7 @@ def align_reference_pose(
     ``max_shift_m`` (what fills the view is not the floor: a floor-coloured panel).
     """
     p = params if params is not None else AlignParams()
-    h, w = floor_mask.shape
-    if gray_cur.shape != (h, w) or gray_ref.shape != (h, w):
-        raise ValueError(
-            f"gray_cur {gray_cur.shape} and gray_ref {gray_ref.shape} must match "
-            f"floor_mask {floor_mask.shape}"
-        )
+    h, w = _check_views(floor_mask, gray_cur, gray_ref)
     G_inv = np.linalg.inv(np.asarray(H_ground_from_image, dtype=np.float64))
     T_ref_cur = np.linalg.inv(_rigid(*T_world_ref)) @ _rigid(*T_world_cur)
     linear = cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP
@@ -766,12 +774,7 @@ def confirm_floor(
     camera_xy_robot : the camera's position on the robot (metres).
     """
     p = params if params is not None else PlanarParams()
-    h, w = floor_mask.shape
-    if gray_cur.shape != (h, w) or gray_ref.shape != (h, w):
-        raise ValueError(
-            f"gray_cur {gray_cur.shape} and gray_ref {gray_ref.shape} must match "
-            f"floor_mask {floor_mask.shape}"
-        )
+    h, w = _check_views(floor_mask, gray_cur, gray_ref)
 
     def result(
         floor: NDArray[np.bool_],
