@@ -587,23 +587,26 @@ def align_reference_pose(
         return M, size
 
     def texture(
-        gray: NDArray[np.uint8], H_image_from_raster: NDArray[np.float64], size: tuple[int, int]
+        gray: NDArray[np.uint8],
+        H_image_from_raster: NDArray[np.float64],
+        size: tuple[int, int],
+        cell_m: float,
     ) -> NDArray[np.float32]:
-        """``gray`` on a raster, less what is smoother than ``texture_sigma_cells``
-        of the fine raster."""
+        """``gray`` on a raster of ``cell_m`` cells, less what is smoother than
+        ``texture_sigma_cells`` of the fine raster."""
         image = cv2.warpPerspective(gray, H_image_from_raster, size, flags=linear)
         image = image.astype(np.float32)
-        sigma = p.texture_sigma_cells * fine_size[0] / size[0]
+        sigma = p.texture_sigma_cells * p.cell_m / cell_m
         return np.asarray(image - cv2.GaussianBlur(image, (0, 0), sigma), np.float32)
 
-    def usable(M: NDArray[np.float64], size: tuple[int, int]) -> NDArray[np.bool_]:
+    def usable(M: NDArray[np.float64], size: tuple[int, int], cell_m: float) -> NDArray[np.bool_]:
         """Cells on the current colour floor that the reference sees too, away from
         the floor's edges (an edge is no floor texture)."""
         floor = cv2.warpPerspective(floor_mask.view(np.uint8), G_inv @ M, size, flags=nearest)
         seen_ref = cv2.warpPerspective(
             np.ones((h, w), np.uint8), G_inv @ T_ref_cur @ M, size, flags=nearest
         )
-        margin = 9 if size == fine_size else 5
+        margin = 9 if cell_m == p.cell_m else 5
         kernel = np.ones((margin, margin), np.uint8)
         both = np.asarray(floor, np.uint8) & np.asarray(seen_ref, np.uint8)
         return np.asarray(cv2.erode(both, kernel, borderValue=0) > 0, np.bool_)
@@ -619,11 +622,11 @@ def align_reference_pose(
 
         def __init__(self, cell_m: float) -> None:
             self.M, self.size = raster(cell_m)
-            self.valid = usable(self.M, self.size)
+            self.valid = usable(self.M, self.size, cell_m)
             pad_m = p.max_turn_rad * math.hypot(p.far_m, p.half_width_m) + 2 * cell_m
             self.M_pad, size_pad = raster(cell_m, pad_m)
-            self.ref = texture(gray_ref, G_inv @ T_ref_cur @ self.M_pad, size_pad)
-            self.cur = texture(gray_cur, G_inv @ self.M, self.size)
+            self.ref = texture(gray_ref, G_inv @ T_ref_cur @ self.M_pad, size_pad, cell_m)
+            self.cur = texture(gray_cur, G_inv @ self.M, self.size, cell_m)
 
         def ref_turned(self, turn_rad: float) -> NDArray[np.float32]:
             A = np.linalg.inv(self.M_pad) @ np.linalg.inv(T_ref_cur) @ turned(turn_rad) @ self.M
@@ -645,7 +648,6 @@ def align_reference_pose(
                     best = (float(turn), score)
             return best
 
-    fine_size = raster(p.cell_m)[1]
     fine = Scale(p.cell_m)
     if int(np.count_nonzero(fine.valid)) < p.min_cells:
         return None
