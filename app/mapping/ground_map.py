@@ -40,6 +40,8 @@ from app.perception.planar import (
     align_reference_pose,
     confirm_floor,
     floor_before_standing,
+    row_ground_distance_m,
+    standing_feet,
     view_homography,
 )
 from app.perception.standing import horizon_rows, standing_across_horizon
@@ -144,7 +146,8 @@ class MapUpdate:
 STANDING_COLOUR_STRIDE = 4
 """Every this many standing pixels' colours vote on unlearning (thousands per test)."""
 PROBE_STANDING_REACH_M = 0.3
-"""An occupied cell this close to one parallax saw standing is a real edge: not probed."""
+"""An occupied cell this close to one geometry saw standing is a real edge: not probed
+(what stands is marked at its foot, where the floor ends: `standing_feet`)."""
 PROBE_GIVEN_UP_RADIUS_M = 0.8
 """Edges within this of a given-up goal are not probed again (`GroundMapper.frontiers`):
 the probe stood within the inflation radius plus two cells of its edge, and an edge
@@ -239,6 +242,7 @@ class GroundMapper:
         self.parallax_unaligned = 0
         """Of those, the tests whose views' floors could not be aligned (for the report)."""
         self._parallax_due_s = -math.inf
+        self._row_distance: tuple[tuple[int, ...], NDArray[np.float64]] | None = None
         self._confirmed: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
         self._cut: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
         """The colour floor the last parallax test found behind something standing (image
@@ -320,6 +324,7 @@ class GroundMapper:
         # longer known floor (a textureless face can pass parallax as flat) and its
         # colour is unlearned.
         standing_image = standing_px
+        ground_floor = floor_mask
         if tested is not None:
             # What parallax found flat is known floor from now on.
             flat = tested.floor & tested.tested & ~tested.standing
@@ -327,14 +332,22 @@ class GroundMapper:
             standing_image = (
                 tested.standing if standing_image is None else tested.standing | standing_image
             )
+            ground_floor = floor_mask | (tested.tested & ~tested.standing)
         if standing_image is not None:
             standing = birdseye_floor_patch(standing_image, self.birdseye) == FLOOR
+            # Only its foot stands where the homography puts it: the rest of a standing
+            # thing lands in a ray behind it, floor that must stay known and keep its
+            # edges open to probes (`standing_feet`).
+            feet_image = standing_feet(
+                standing_image, ground_floor, self._row_distance_m(standing_image.shape)
+            )
+            feet = birdseye_floor_patch(feet_image, self.birdseye) == FLOOR
             standing_bgr = (
                 image[standing_image][::STANDING_COLOUR_STRIDE]
                 if image is not None and image.ndim == 3
                 else None
             )
-            memory.mark_standing(index[standing], standing_bgr)
+            memory.mark_standing(index[feet], standing_bgr)
             patch[standing] = NOT_FLOOR
         memory.drive_over(T_world_robot, self.mapping.robot_radius_m)
         corrected = memory.correct_patch(patch, index)
@@ -344,6 +357,14 @@ class GroundMapper:
             patch[birdseye_floor_patch(cut_px, self.birdseye) == FLOOR] = NOT_FLOOR
         summary = self.grid.update(patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot)
         return MapUpdate(patch, summary, corrected, correction, match_s)
+
+    def _row_distance_m(self, shape: tuple[int, ...]) -> NDArray[np.float64]:
+        """Forward ground distance of each image row (`row_ground_distance_m`), cached
+        per image size."""
+        if self._row_distance is None or self._row_distance[0] != shape[:2]:
+            rows_m = row_ground_distance_m(self.calibration.H_ground_from_image, shape[1], shape[0])
+            self._row_distance = (shape[:2], rows_m)
+        return self._row_distance[1]
 
     def _localize(
         self,
@@ -536,8 +557,6 @@ class GroundMapper:
         cells[self.given_up.seen & (cells == UNKNOWN)] = FREE
         probe_cells = None
         if self.mapping.frontier_probe_edges:
-            # Parallax marks what stands beyond an edge (the wall above its foot): the
-            # edge's own cells lie up to a band's width before it.
             standing = inflate_obstacles(
                 self.memory.standing != 0, PROBE_STANDING_REACH_M / world.cell_m
             )

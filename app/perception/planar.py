@@ -924,6 +924,92 @@ def floor_before_standing(
     return np.asarray(kept, dtype=np.bool_)
 
 
+FOOT_DEPTH_M = 0.05
+"""`standing_feet`: how far past its foot (along the floor) a standing thing's pixels are
+kept: its base and a few centimetres of its face, where the floor homography puts them
+within the obstacle band of the map's cells."""
+
+
+@numba.njit(cache=True, nogil=True)
+def _standing_feet(
+    standing: NDArray[np.bool_],
+    floor: NDArray[np.bool_],
+    row_distance_m: NDArray[np.float64],
+    foot_depth_m: float,
+) -> NDArray[np.bool_]:
+    height, width = standing.shape
+    feet = np.zeros((height, width), dtype=np.bool_)
+    for c in range(width):
+        floor_below = False
+        edge = -1
+        r = height - 1
+        while r >= 0:
+            if standing[r, c]:
+                foot = edge if floor_below and edge >= 0 else r
+                base = row_distance_m[foot]
+                k = foot
+                while k >= 0 and (standing[k, c] or not floor[k, c]):
+                    if not (row_distance_m[k] - base <= foot_depth_m):
+                        break  # also at the horizon, where the distance is NaN
+                    feet[k, c] = True
+                    k -= 1
+                # The rest of this standing run lands behind it: skip it.
+                while r >= 0 and standing[r, c]:
+                    r -= 1
+                floor_below = False
+                edge = -1
+                continue
+            if floor[r, c]:
+                floor_below = True
+                edge = -1
+            elif floor_below and edge < 0:
+                edge = r
+            r -= 1
+    return feet
+
+
+def standing_feet(
+    standing: NDArray[np.bool_],
+    floor: NDArray[np.bool_],
+    row_distance_m: NDArray[np.float64],
+    foot_depth_m: float = FOOT_DEPTH_M,
+) -> NDArray[np.bool_]:
+    """The pixels of ``standing`` that the floor homography puts where the thing stands.
+
+    Only a standing thing's foot lies on the floor; every pixel above it projects through
+    the floor homography to a point behind it, in a ray across the floor beyond (a table
+    leg's crosses the room). Walking each column up from the bottom, a standing run's
+    *foot* is where the floor below it ends: the first not-floor pixel above the
+    ``floor`` (colour or parallax-flat floor) when only not-floor pixels lie between (the
+    lower part of a plain wall, which parallax cannot test, stands too), else the run's
+    own lowest pixel. Kept: the pixels from the foot up, through not-floor or standing
+    ones, whose forward ground distance (``row_distance_m``, per row; NaN above the
+    horizon) is within ``foot_depth_m`` of the foot's. Returns a new (H, W) bool mask.
+
+    Examples
+    --------
+    >>> standing = np.zeros((6, 1), bool); standing[1:3, 0] = True
+    >>> floor = np.zeros((6, 1), bool); floor[4:, 0] = True
+    >>> rows_m = np.array([np.nan, 3.0, 2.0, 1.2, 1.15, 1.1])
+    >>> standing_feet(standing, floor, rows_m).astype(int).ravel().tolist()
+    [0, 0, 0, 1, 0, 0]
+    """
+    if not (standing.shape == floor.shape and row_distance_m.shape == (standing.shape[0],)):
+        raise ValueError(
+            f"standing {standing.shape}, floor {floor.shape} and row_distance_m"
+            f" {row_distance_m.shape} must agree"
+        )
+    return np.asarray(
+        _standing_feet(
+            np.ascontiguousarray(standing, dtype=np.bool_),
+            np.ascontiguousarray(floor, dtype=np.bool_),
+            np.ascontiguousarray(row_distance_m, dtype=np.float64),
+            float(foot_depth_m),
+        ),
+        dtype=np.bool_,
+    )
+
+
 def _small_gray(gray: NDArray[np.uint8], size: tuple[int, int]) -> NDArray[np.uint8]:
     """``gray`` at ``size`` (width, height): area averaging, which also antialiases."""
     if (gray.shape[1], gray.shape[0]) == size:

@@ -7,6 +7,7 @@ import math
 from dataclasses import replace
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -188,6 +189,18 @@ def test_a_floor_coloured_box_the_mask_calls_floor_is_an_obstacle_by_the_horizon
     assert clear_found == pytest.approx(expected, abs=0.06)
     assert clear_missed > expected + 1.0
     assert mapper.standing_frames == 1 and plain.standing_frames == 0
+    # The floor memory marks what stands where it stands (the box, and the brown things
+    # beyond it the mask also called floor), not along the rays their faces project to
+    # through the floor homography, up to the camera's range behind them.
+    truth_grid, truth = renderer.world.occupancy(0.05)  # type: ignore[attr-defined]
+    to_obstacle_m = cv2.distanceTransform((truth == 0).astype(np.uint8), cv2.DIST_L2, 5) * 0.05
+    x, y = mapper.memory.world_grid.cell_centers()
+    marked = mapper.memory.standing != 0
+    at_box = np.hypot(x[marked] - box_xy[0], y[marked] - box_xy[1]) < 0.35
+    assert at_box.sum() >= 5
+    rc = truth_grid.cell_of(np.column_stack((x[marked], y[marked])))
+    # Half at least lie at a true obstacle (marking whole rays: 200 of 1549 cells).
+    assert (to_obstacle_m[rc[:, 0], rc[:, 1]] <= 0.15).mean() >= 0.5
 
 
 def test_unsure_pixels_give_no_evidence_and_the_rest_fuses_as_without() -> None:

@@ -439,3 +439,54 @@ def test_a_floor_without_texture_is_not_aligned_and_shapes_are_checked() -> None
     assert planar.align_reference_pose(plain[0], plain[1], nothing, G, REF_POSE, CUR_POSE) is None
     with pytest.raises(ValueError, match="must match"):
         planar.align_reference_pose(plain[0][:-1], plain[1], floor, G, REF_POSE, CUR_POSE)
+
+
+# -- standing_feet -------------------------------------------------------------------------
+
+FEET_ROWS_M = planar.row_ground_distance_m(G, 640, 480)
+
+
+def one_column(*runs: tuple[int, int, str]) -> tuple[np.ndarray, np.ndarray]:
+    """A 480 x 1 column: (first row, last row, "floor" | "standing") runs; the rest is
+    not floor and untested."""
+    standing = np.zeros((480, 1), bool)
+    floor = np.zeros((480, 1), bool)
+    for first, last, kind in runs:
+        (floor if kind == "floor" else standing)[first : last + 1, 0] = True
+    return standing, floor
+
+
+def kept_rows(feet: np.ndarray) -> list[int]:
+    return np.flatnonzero(feet[:, 0]).tolist()
+
+
+def test_only_the_foot_of_a_standing_thing_is_kept_not_the_ray_behind_it() -> None:
+    # A table leg on the floor: standing from row 300 up to near the horizon.
+    standing, floor = one_column((301, 479, "floor"), (250, 300, "standing"))
+    rows = kept_rows(planar.standing_feet(standing, floor, FEET_ROWS_M))
+    assert rows and rows[-1] == 300
+    foot_m = FEET_ROWS_M[300]
+    assert all(FEET_ROWS_M[r] - foot_m <= planar.FOOT_DEPTH_M for r in rows)
+    assert FEET_ROWS_M[rows[0] - 1] - foot_m > planar.FOOT_DEPTH_M  # the ray is dropped
+
+
+def test_a_plain_walls_foot_is_where_the_floor_below_it_ends() -> None:
+    # Parallax saw only the wall's upper part standing; its plain lower part is untested.
+    standing, floor = one_column((301, 479, "floor"), (150, 240, "standing"))
+    rows = kept_rows(planar.standing_feet(standing, floor, FEET_ROWS_M))
+    assert rows and rows[-1] == 300  # the first not-floor pixel above the floor
+    assert min(rows) > 240  # nothing of the run itself, far behind
+
+
+def test_flat_floor_between_an_edge_and_a_far_wall_keeps_the_edge_unproven() -> None:
+    # Tiles past a threshold: not floor by colour at rows 280-300 (untested), then flat by
+    # parallax (rows 230-279), then untested tiles and the far wall standing at 180-200.
+    standing, floor = one_column((301, 479, "floor"), (230, 279, "floor"), (180, 200, "standing"))
+    rows = kept_rows(planar.standing_feet(standing, floor, FEET_ROWS_M))
+    assert rows and rows[-1] == 229  # the wall's foot is past the flat tiles...
+    assert not any(r >= 280 for r in rows)  # ...not at the threshold
+
+
+def test_standing_feet_checks_its_shapes() -> None:
+    with pytest.raises(ValueError, match="must agree"):
+        planar.standing_feet(np.zeros((4, 3), bool), np.zeros((4, 3), bool), np.zeros(3))
