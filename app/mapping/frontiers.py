@@ -41,16 +41,23 @@ line to the representative cell: a robot that turns slowly prefers what lies ahe
 The goal's cell is that cluster's representative cell, and the goal carries the path to it.
 
 **Edge probes.** A floor the colour method has not met (a rug, the kitchen's tiles past a
-threshold) ends the floor in every frame, and the map keeps its edge as a wall: the
-search then finds no reachable frontier although the home goes on. Given ``probe_cells``
-(occupied cells that geometry has not seen standing, from the caller), the search, when
-no frontier is reachable, sends the robot to look at such an edge: the *probe targets*
-are probe cells with an unknown 4-neighbour (an edge with nothing known behind it), in
-8-connected groups of at least ``min_cluster_cells``; the goal is the reachable cell
-nearest by path within ``inflation_radius_m`` + two cells of a target. Driving straight
-at it gives the motion-parallax test its baseline: a flat edge becomes known floor (and
-its colour learned), a standing one is marked so, and the caller leaves it out of
-``probe_cells`` from then on. The goal's ``probe`` is True.
+threshold) ends the floor in every frame, and the map keeps its edge as a wall; a plank
+seam or a rug's border leaves a thin false wall across floor the map does see. Either
+way the search finds no reachable frontier although the home goes on. Given
+``probe_cells`` (occupied cells that geometry has not seen standing, from the caller),
+the search, when no frontier is reachable, asks where a frontier would be reachable *if
+those unproven edges were floor*: it searches again on that relaxed map (other obstacles
+and their inflation kept; a move into a cell the true map cannot reach costs
+``PROBE_CROSSING_COST`` more, so the way that stays longest on reachable floor wins) for
+the nearest frontier cluster of at least ``min_cluster_cells`` cells that the true map
+cannot reach. Where the path to it first leaves the reachable floor, the edge it meets
+(its cells within ``PROBE_EDGE_SPAN_M``) is the target; the goal is the reachable cell
+within ``inflation_radius_m`` + two cells of that target that lies nearest the meeting
+point (then nearest by path): it stays put while the robot drives there. Driving
+at it gives the motion-parallax test its baseline: a flat edge becomes known floor (its
+colour learned, and free evidence wears its false wall away), a standing one is marked
+so, and the caller leaves it out of ``probe_cells`` from then on. The goal's ``probe``
+is True.
 """
 
 from __future__ import annotations
@@ -74,6 +81,14 @@ REASON_NO_REACHABLE = "no reachable frontier"
 """`FrontierSearch.reason`: clusters exist but none has a traversable path from the robot."""
 REASON_OUTSIDE_MAP = "robot outside the map"
 """`FrontierSearch.reason`: the robot's position is not on the grid."""
+
+PROBE_CROSSING_COST = 4.0
+"""Edge probes' relaxed search: the extra step weight of a cell the true map cannot reach
+(an unproven edge, its inflation, the floor behind it), so the way that crosses where the
+frontier is nearest beats a detour over the unproven side."""
+PROBE_EDGE_SPAN_M = 0.3
+"""Edge probes: the unproven edge cells this close to where the relaxed path meets the
+edge are the probe's target (one look covers about this much of an edge)."""
 
 
 @dataclass(frozen=True)
@@ -544,7 +559,9 @@ def find_frontiers(
         probe = (
             None
             if probe_cells is None
-            else _probe_goal(cells, grid, probe_cells, distance, parent, params)
+            else _probe_goal(
+                known, grid, probe_cells, distance, parent, params, (row, col), footprint, excluded
+            )
         )
         if probe is not None:
             return result(probe, "")
@@ -573,40 +590,82 @@ def find_frontiers(
 
 
 def _probe_goal(
-    cells: NDArray[np.int8],
+    known: NDArray[np.int8],
     grid: GroundGrid,
     probe_cells: NDArray[np.bool_],
     distance: NDArray[np.float64],
     parent: NDArray[np.int64],
     params: FrontierParams,
+    robot_cell: tuple[int, int],
+    footprint: NDArray[np.bool_],
+    excluded: NDArray[np.bool_],
 ) -> FrontierGoal | None:
-    """The nearest reachable cell from which to look at an edge (module docstring)."""
-    if probe_cells.shape != cells.shape:
-        raise ValueError(f"probe_cells: expected shape {cells.shape}, got {probe_cells.shape}")
-    edge = probe_cells & (cells == OCCUPIED)
-    unknown = np.pad(cells == UNKNOWN, 1, constant_values=False)
-    cols = cells.shape[1]
-    behind = unknown[:-2, 1:-1] | unknown[2:, 1:-1] | unknown[1:-1, :-2] | unknown[1:-1, 2:]
-    targets = edge & behind
-    labels, n_labels = ndimage.label(targets, structure=np.ones((3, 3), dtype=bool))
+    """The nearest reachable cell from which to look at the unproven edge that stands
+    between the robot and the nearest frontier it cannot reach (module docstring).
+    ``known`` is the classified grid with the robot's footprint free."""
+    if probe_cells.shape != known.shape:
+        raise ValueError(f"probe_cells: expected shape {known.shape}, got {probe_cells.shape}")
+    occupied = known == OCCUPIED
+    edge = probe_cells & occupied
+    if not edge.any():
+        return None
+    cell_m = grid.cell_m
+    hard = occupied & ~edge
+    relaxed = known.copy()
+    relaxed[edge] = FREE
+    reachable = np.isfinite(distance)
+    frontier = frontier_mask(relaxed, adjacency=params.frontier_adjacency, exclude=excluded)
+    frontier &= ~reachable
+    labels, n_labels = ndimage.label(frontier, structure=np.ones((3, 3), dtype=bool))
     if n_labels == 0:
         return None
     sizes = np.bincount(labels.ravel(), minlength=n_labels + 1)
     kept = sizes >= params.min_cluster_cells
     kept[0] = False
-    targets = kept[labels]
-    if not targets.any():
+    frontier = kept[labels]
+    if not frontier.any():
         return None
-    reach_cells = params.inflation_radius_m / grid.cell_m + 2.0
-    near = inflate_obstacles(targets, reach_cells)
-    # Not where the robot stands: driving there gives no view of the edge.
-    candidates = near & np.isfinite(distance) & (distance >= params.exclude_radius_m)
+    inflated = inflate_obstacles(hard, params.inflation_radius_m / cell_m)
+    traversable = ((relaxed == FREE) & ~inflated) | (footprint & ~hard)
+    weight = clearance_weights(
+        hard,
+        cell_m,
+        params.inflation_radius_m,
+        params.clearance_preferred_m,
+        params.clearance_cost,
+    )
+    weight[~reachable] += PROBE_CROSSING_COST
+    relaxed_distance, relaxed_parent = path_distances(traversable, robot_cell, cell_m, weight)
+    ahead = np.where(frontier, relaxed_distance, np.inf)
+    flat = int(np.argmin(ahead))
+    if not math.isfinite(ahead.flat[flat]):
+        return None
+    cols = known.shape[1]
+    way = trace_path(relaxed_parent, cols, (flat // cols, flat % cols))
+    rows_, cols_ = way[:, 0], way[:, 1]
+    # The frontier is unreachable, so the way leaves the reachable floor somewhere.
+    leaving = int(np.flatnonzero(~reachable[rows_, cols_])[0])
+    on_edge = np.flatnonzero(edge[rows_[leaving:], cols_[leaving:]])
+    x, y = grid.cell_centers()
+    if on_edge.size:
+        meet = tuple(way[leaving + int(on_edge[0])])
+    else:
+        # It slipped past the edge's end through its inflation: the nearest edge cell.
+        r0, c0 = way[leaving]
+        gap = np.where(edge, np.hypot(x - x[r0, c0], y - y[r0, c0]), np.inf)
+        meet = np.unravel_index(int(np.argmin(gap)), gap.shape)
+    (mr, mc) = (int(meet[0]), int(meet[1]))
+    targets = edge & (np.hypot(x - x[mr, mc], y - y[mr, mc]) <= PROBE_EDGE_SPAN_M + 1e-9)
+    reach_cells = params.inflation_radius_m / cell_m + 2.0
+    candidates = inflate_obstacles(targets, reach_cells) & reachable
     if not candidates.any():
         return None
-    masked = np.where(candidates, distance, np.inf)
-    flat = int(np.argmin(masked))
+    # The reachable cell nearest where the way meets the edge (then the nearest by path):
+    # it stays put while the robot drives to it, so the robot gets there.
+    offset = np.where(candidates, np.hypot(x - x[mr, mc], y - y[mr, mc]), np.inf)
+    nearest = candidates & (offset <= offset.min() + 1e-9)
+    flat = int(np.argmin(np.where(nearest, distance, np.inf)))
     cell = (flat // cols, flat % cols)
-    x, y = grid.cell_centers()
     return FrontierGoal(
         cluster_index=-1,
         cell=cell,

@@ -7,7 +7,12 @@ import numpy as np
 
 from app.mapping.floor_memory import FloorMemory
 from app.mapping.frames import GroundGrid
-from app.mapping.frontiers import REASON_NO_FRONTIER, FrontierParams, find_frontiers
+from app.mapping.frontiers import (
+    REASON_NO_FRONTIER,
+    REASON_NO_REACHABLE,
+    FrontierParams,
+    find_frontiers,
+)
 from app.mapping.occupancy import FREE, OCCUPIED, UNKNOWN
 
 GRID = GroundGrid(3.0, 1.5, 0.1, 30, 30)  # x 0..3, y -1.5..1.5
@@ -33,15 +38,15 @@ def test_without_probe_cells_nothing_is_left() -> None:
     assert search.goal is None and search.reason == REASON_NO_FRONTIER
 
 
-def test_the_probe_goes_to_the_nearest_cell_before_the_unproven_edge() -> None:
+def test_the_probe_goes_to_the_reachable_cell_nearest_where_its_way_meets_the_edge() -> None:
     search = find_frontiers(boxed_in(), GRID, ROBOT, PARAMS, probe_cells=np.ones(GRID.shape, bool))
     goal = search.goal
     assert goal is not None and goal.probe and search.reason == ""
-    # Within the inflation radius plus two cells of row 10, straight below the robot
-    # (the nearest such cell by path), and traversable (outside the inflation).
-    assert goal.cell == (7, 14)
+    # Straight below the robot, where its way to the unknown meets row 10: the nearest
+    # reachable cell to that point (row 9 lies inside the inflation).
+    assert goal.cell == (8, 14)
     assert tuple(goal.path_cells[0]) == (4, 14) and tuple(goal.path_cells[-1]) == goal.cell
-    assert abs(goal.path_length_m - 0.3) < 1e-9
+    assert abs(goal.path_length_m - 0.4) < 1e-9
 
 
 def test_edges_seen_standing_or_already_probed_are_left_alone() -> None:
@@ -51,16 +56,55 @@ def test_edges_seen_standing_or_already_probed_are_left_alone() -> None:
     assert search.goal is None and search.reason == REASON_NO_FRONTIER
 
 
-def test_a_short_edge_is_not_worth_a_probe() -> None:
+def test_a_small_frontier_behind_an_edge_is_not_worth_a_probe() -> None:
     cells = boxed_in()
     cells[10, :] = FREE
-    cells[11, :] = OCCUPIED  # the band moves down; behind it only two unknown cells
+    cells[11, :] = OCCUPIED  # the band moves down; behind it seen floor, one cell unknown
     cells[12:, :] = FREE
-    cells[12, 5:7] = UNKNOWN
-    search = find_frontiers(cells, GRID, ROBOT, PARAMS, probe_cells=np.ones(GRID.shape, bool))
-    # The two unknown cells are a frontier too small to keep, and the edge before them
-    # only two cells long: no probe (min_cluster_cells 3).
+    cells[12, 5] = UNKNOWN
+    params = FrontierParams(
+        robot_radius_m=0.1, inflation_radius_m=0.1, exclude_radius_m=0.3, min_cluster_cells=5
+    )
+    search = find_frontiers(cells, GRID, ROBOT, params, probe_cells=np.ones(GRID.shape, bool))
+    # Even with the band taken for floor, the frontier round the one unknown cell is four
+    # cells: fewer than min_cluster_cells, no probe.
     assert search.goal is None
+    cells[12, 5:8] = UNKNOWN  # three unknown cells: a frontier worth the look
+    search = find_frontiers(cells, GRID, ROBOT, params, probe_cells=np.ones(GRID.shape, bool))
+    assert search.goal is not None and search.goal.probe
+
+
+def seam_across_the_floor() -> np.ndarray:
+    """Seen floor rows 1..19 cut by a one-cell occupied line at row 10 (a plank seam the
+    colour method took for a wall), unexplored floor past row 19, walls at the sides."""
+    cells = np.full(GRID.shape, UNKNOWN, np.int8)
+    cells[1:20, 1:29] = FREE
+    cells[0, :] = OCCUPIED
+    cells[:21, [0, 29]] = OCCUPIED
+    cells[10, 1:29] = OCCUPIED
+    return cells
+
+
+def test_a_false_wall_across_seen_floor_is_probed_where_the_way_crosses_it() -> None:
+    cells = seam_across_the_floor()
+    # Nothing unknown touches the seam, yet it is all that keeps the robot from row 19.
+    search = find_frontiers(cells, GRID, ROBOT, PARAMS)
+    assert search.goal is None and search.reason == REASON_NO_REACHABLE
+    search = find_frontiers(cells, GRID, ROBOT, PARAMS, probe_cells=np.ones(GRID.shape, bool))
+    goal = search.goal
+    assert goal is not None and goal.probe
+    assert goal.cell == (8, 14)  # straight before the seam, on the way to row 19
+    assert tuple(goal.path_cells[0]) == (4, 14) and tuple(goal.path_cells[-1]) == goal.cell
+
+
+def test_the_probe_crosses_the_seam_where_nothing_was_seen_standing() -> None:
+    probe_cells = np.ones(GRID.shape, bool)
+    probe_cells[10, :21] = False  # this part of the line was seen standing: a real wall
+    search = find_frontiers(seam_across_the_floor(), GRID, ROBOT, PARAMS, probe_cells=probe_cells)
+    goal = search.goal
+    assert goal is not None and goal.probe
+    # Before the unproven part (columns 21..28), not before the wall in front.
+    assert goal.cell[0] == 8 and goal.cell[1] >= 19
 
 
 def test_floor_memory_remembers_what_stood_until_it_is_floor_again() -> None:
