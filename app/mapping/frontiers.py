@@ -500,15 +500,7 @@ def find_frontiers(
     if params.exclude_radius_m > params.robot_radius_m:
         excluded = footprint | footprint_mask(grid, robot_xy, params.exclude_radius_m)
     frontier = frontier_mask(known, adjacency=params.frontier_adjacency, exclude=excluded)
-    inflated = inflate_obstacles(occupied, params.inflation_radius_m / cell_m)
-    traversable = ((cells == FREE) & ~inflated) | (footprint & ~occupied)
-    weight = clearance_weights(
-        occupied,
-        cell_m,
-        params.inflation_radius_m,
-        params.clearance_preferred_m,
-        params.clearance_cost,
-    )
+    traversable, weight = _traversable(known == FREE, occupied, footprint, cell_m, params)
 
     (row, col) = (int(v) for v in grid.cell_of(np.array([robot_xy]))[0])
     on_map = 0 <= row < grid.rows and 0 <= col < grid.cols
@@ -589,6 +581,27 @@ def find_frontiers(
     return result(goal, "")
 
 
+def _traversable(
+    free: NDArray[np.bool_],
+    obstacles: NDArray[np.bool_],
+    footprint: NDArray[np.bool_],
+    cell_m: float,
+    params: FrontierParams,
+) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
+    """The cells the robot's centre may cross (``free`` cells outside the ``obstacles``'
+    inflation, plus its footprint) and their step weights (`clearance_weights`)."""
+    inflated = inflate_obstacles(obstacles, params.inflation_radius_m / cell_m)
+    traversable = (free & ~inflated) | (footprint & ~obstacles)
+    weight = clearance_weights(
+        obstacles,
+        cell_m,
+        params.inflation_radius_m,
+        params.clearance_preferred_m,
+        params.clearance_cost,
+    )
+    return np.asarray(traversable, dtype=np.bool_), weight
+
+
 def _probe_goal(
     known: NDArray[np.int8],
     grid: GroundGrid,
@@ -625,15 +638,7 @@ def _probe_goal(
     frontier = kept[labels]
     if not frontier.any():
         return None
-    inflated = inflate_obstacles(hard, params.inflation_radius_m / cell_m)
-    traversable = ((relaxed == FREE) & ~inflated) | (footprint & ~hard)
-    weight = clearance_weights(
-        hard,
-        cell_m,
-        params.inflation_radius_m,
-        params.clearance_preferred_m,
-        params.clearance_cost,
-    )
+    traversable, weight = _traversable(relaxed == FREE, hard, footprint, cell_m, params)
     weight[~reachable] += PROBE_CROSSING_COST
     relaxed_distance, relaxed_parent = path_distances(traversable, robot_cell, cell_m, weight)
     ahead = np.where(frontier, relaxed_distance, np.inf)
