@@ -231,10 +231,11 @@ def _run_parallax_test(
 ) -> None:
     """The parallax test once more, directly, asking for what stands up too: its kernels
     then run whatever the mapper's choice of views made of the frames above (a second
-    view straight ahead always gives it parallax to test)."""
+    view straight ahead always gives it parallax to test). The views' pose refinement
+    too, on a texture it always finds enough samples in."""
     import cv2
 
-    from app.perception.planar import confirm_floor
+    from app.perception.planar import confirm_floor, refine_reference_pose
 
     assert mapper.parallax is not None
     gray = np.asarray(
@@ -250,6 +251,16 @@ def _run_parallax_test(
         mapper.camera_xy_robot,
         mapper.parallax,
         return_standing=True,
+    )
+    noise = np.random.default_rng(0).integers(0, 256, gray.shape, dtype=np.uint8)
+    texture = np.asarray(cv2.GaussianBlur(noise, (0, 0), 2.0), np.uint8)
+    refine_reference_pose(
+        texture,
+        texture,
+        np.ones(gray.shape, np.bool_),
+        mapper.calibration.H_ground_from_image,
+        (0.0, 0.0, 0.0),
+        (3 * _STEP_M, 0.0, 0.0),
     )
 
 

@@ -5,8 +5,10 @@ half turning up to 0.15 rad on the spot), rendered by the simulator. The referen
 pose the test is given is the true one ("exact"), the true one plus odometry's error
 between two such frames ("slipped": heading N(0, 1.3 deg), position N(0, 3 mm) per
 axis, what wheel slip gave in the home world against the simulator's truth), or the
-slipped one corrected by `planar.align_reference_pose` ("aligned"; pairs it cannot
-align are counted and left out). For each: the share of the tested true-floor pixels
+slipped one corrected by the bird's-eye `planar.align_reference_pose` alone
+("aligned") or by `planar.reference_pose_from_views`, the daemon's (the photometric
+refinement, the alignment where that fails: "refined"); pairs a correction cannot align
+are counted and left out. For each: the share of the tested true-floor pixels
 the test calls standing (false alarms: a floor that stands up blocks the way) and the
 share of the tested obstacle pixels it calls standing (what it should find).
 
@@ -78,16 +80,19 @@ def main() -> None:
         gray = [cv2.cvtColor(f.image, cv2.COLOR_BGR2GRAY) for f in (cur, ref)]
         views.append((cur_pose, ref_pose, slipped, colour, gray, cur.floor_mask))
 
-    for mode in ("exact", "slipped", "aligned"):
+    for mode in ("exact", "slipped", "aligned", "refined"):
         floor_standing = floor_tested = obstacle_standing = obstacle_tested = 0
         unaligned, heading_errors, shift_errors, times = 0, [], [], []
         for cur_pose, ref_pose, slipped, colour, gray, truth in views:
             given = ref_pose if mode == "exact" else slipped
-            if mode == "aligned":
+            if mode in ("aligned", "refined"):
                 start = time.perf_counter()
-                aligned = planar.align_reference_pose(
-                    gray[0], gray[1], colour, H_ground_from_image, slipped, cur_pose
+                align = (
+                    planar.align_reference_pose
+                    if mode == "aligned"
+                    else planar.reference_pose_from_views
                 )
+                aligned = align(gray[0], gray[1], colour, H_ground_from_image, slipped, cur_pose)
                 times.append(time.perf_counter() - start)
                 if aligned is None:
                     unaligned += 1
@@ -115,7 +120,7 @@ def main() -> None:
             f"the tested floor, {obstacle_standing / max(1, obstacle_tested):.3f} of the "
             f"tested obstacles"
         )
-        if mode == "aligned":
+        if mode in ("aligned", "refined"):
             line += (
                 f"; {unaligned}/{len(views)} pairs not aligned; residual heading p50/p90 "
                 f"{np.percentile(heading_errors, 50):.2f}/{np.percentile(heading_errors, 90):.2f}"

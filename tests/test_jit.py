@@ -27,6 +27,7 @@ NEVER_CALLED = {
 """Kernels the daemon never calls, and why."""
 PARALLAX_ONLY = {
     "app.perception.planar._extend_columns",
+    "app.perception.planar._gauss_newton_system",
     "app.perception.planar._parallax_search",
 }
 """Called only with mapping.parallax_floor (on by default, off with a lens model; its own

@@ -37,9 +37,9 @@ from app.mapping.scan_match import LocalizerParams, MatchParams, ScanLocalizer, 
 from app.perception.planar import (
     ParallaxResult,
     PlanarParams,
-    align_reference_pose,
     confirm_floor,
     floor_before_standing,
+    reference_pose_from_views,
     row_ground_distance_m,
     standing_feet,
     view_homography,
@@ -506,10 +506,11 @@ class GroundMapper:
         if best is not None and gray.shape == best[0].shape and now_s >= self._parallax_due_s:
             self._parallax_due_s = now_s + PARALLAX_PERIOD_S
             # Odometry's relative pose, checked against the floor both views see: wheel
-            # slip alone would make fine floor textures stand up (`align_reference_pose`).
+            # slip alone would make fine floor textures stand up
+            # (`reference_pose_from_views`).
             # Where the floor cannot be aligned (too plain, or a floor-coloured panel
             # fills the view) the test runs on odometry: what stands must still be seen.
-            ref_pose = align_reference_pose(
+            ref_pose = reference_pose_from_views(
                 gray, best[0], floor_mask, self.calibration.H_ground_from_image, best[1], here
             )
             if ref_pose is None:

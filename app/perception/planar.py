@@ -40,7 +40,7 @@ from __future__ import annotations
 
 import contextlib
 import math
-from dataclasses import dataclass
+from dataclasses import dataclass, replace
 from typing import Literal, overload
 
 import cv2
@@ -695,6 +695,256 @@ def align_reference_pose(
         float(T_world_ref_aligned[1, 2]),
         float(math.atan2(T_world_ref_aligned[1, 0], T_world_ref_aligned[0, 0])),
     )
+
+
+@dataclass(frozen=True)
+class RefineParams:
+    """The photometric pose refinement of `refine_reference_pose` (see there).
+
+    Attributes
+    ----------
+    downscale : works on images this many times smaller (the parallax test's own).
+    sigmas_px : Gaussian smoothing of each pass, coarse to fine, in pixels of the small
+        images: the first pass widens the basin (odometry's degree or two), the last
+        sees the texture the test compares.
+    iterations : Gauss-Newton steps per pass at most (it stops earlier once a step
+        moves the pose by less than a hundredth of a millimetre).
+    max_points : samples at most: textured floor pixels, evenly spread over those found.
+    min_points : fewer textured floor pixels than this: nothing to align on.
+    gradient_min : grey levels per pixel a sample's gradient needs.
+    huber_grey : residuals beyond this are down-weighted (Huber): what is not floor in
+        the colour floor (a box's face, a reflection) does not pull the pose.
+    min_inlier_share : of the samples, the share that must match within ``huber_grey``
+        at the end; below it the views' floors did not line up (a floor-coloured panel
+        fills the view, or the floor mirrors what stands on it).
+    max_turn_rad, max_shift_m : the largest correction of odometry believed.
+    """
+
+    downscale: int = 2
+    sigmas_px: tuple[float, ...] = (1.5, 0.5)
+    iterations: int = 4
+    max_points: int = 3000
+    min_points: int = 200
+    gradient_min: float = 2.0
+    huber_grey: float = 6.0
+    min_inlier_share: float = 0.75
+    max_turn_rad: float = 0.06
+    max_shift_m: float = 0.02
+
+
+def refine_reference_pose(
+    gray_cur: NDArray[np.uint8],
+    gray_ref: NDArray[np.uint8],
+    floor_mask: NDArray[np.bool_],
+    H_ground_from_image: NDArray[np.float64],
+    T_world_ref: tuple[float, float, float],
+    T_world_cur: tuple[float, float, float],
+    params: RefineParams | None = None,
+) -> tuple[float, float, float] | None:
+    """The reference view's pose, corrected until the two views' floors match pixel for
+    pixel: the parallax test's own comparison, minimised over the reference pose.
+
+    Textured pixels of the current view's colour floor are placed on the world's floor
+    through the floor homography and the current pose; each is looked up in the
+    reference view through that pose. Gauss-Newton (Huber-weighted, coarse to fine)
+    moves the reference pose (x, y, heading) until the looked-up grey levels match the
+    current ones. This works in the test's own images, at its resolution, so what is
+    left matches to a few hundredths of a degree (`scripts/eval_alignment.py`), where
+    the bird's-eye `align_reference_pose` leaves a tenth or two: enough at a metre for a
+    fine texture to stand up. A shift along a texture of parallel lines is left as it
+    was: it changes nothing the test could see either.
+
+    Returns the corrected ``T_world_ref`` (x_m, y_m, theta_rad), or None: too few
+    textured floor pixels, too few of them matching in the end, or a correction beyond
+    ``max_turn_rad`` / ``max_shift_m``.
+    """
+    p = params if params is not None else RefineParams()
+    h, w = _check_views(floor_mask, gray_cur, gray_ref)
+    k = p.downscale
+    small = (w // k, h // k)
+    S = np.array([[k, 0.0, (k - 1) / 2.0], [0.0, k, (k - 1) / 2.0], [0.0, 0.0, 1.0]])
+    G = np.asarray(H_ground_from_image, dtype=np.float64) @ S
+    # Away from the colour floor's edges by the comparison's reach.
+    mask = cv2.erode(
+        np.ascontiguousarray(floor_mask[::k, ::k][: small[1], : small[0]], np.uint8),
+        np.ones((5, 5), np.uint8),
+        borderValue=0,
+    )
+    cur_small = _small_gray(gray_cur, small).astype(np.float32)
+    ref_small = _small_gray(gray_ref, small).astype(np.float32)
+    cur_fine = np.asarray(cv2.GaussianBlur(cur_small, (0, 0), p.sigmas_px[-1]), np.float32)
+    grad_u = np.asarray(cv2.Sobel(cur_fine, cv2.CV_32F, 1, 0, ksize=3), np.float32)
+    grad_v = np.asarray(cv2.Sobel(cur_fine, cv2.CV_32F, 0, 1, ksize=3), np.float32)
+    # Sobel is 8 times the gradient.
+    textured = (mask > 0) & (grad_u * grad_u + grad_v * grad_v > (8.0 * p.gradient_min) ** 2)
+    vs, us = np.nonzero(textured)
+    if vs.size < p.min_points:
+        return None
+    if vs.size > p.max_points:
+        pick = np.linspace(0, vs.size - 1, p.max_points).astype(np.int64)
+        vs, us = vs[pick], us[pick]
+    # Where the current view puts each sample on the world's floor.
+    X = (_rigid(*T_world_cur) @ G) @ np.stack(
+        [us.astype(np.float64), vs.astype(np.float64), np.ones(vs.size)]
+    )
+    floor_x, floor_y = np.ascontiguousarray(X[0] / X[2]), np.ascontiguousarray(X[1] / X[2])
+    G_inv = np.ascontiguousarray(np.linalg.inv(G))
+    pose = np.array(T_world_ref, dtype=np.float64)
+    normal = np.empty((3, 3), np.float64)
+    rhs = np.empty(3, np.float64)
+    for sigma in p.sigmas_px:
+        cur = cur_fine if sigma == p.sigmas_px[-1] else cv2.GaussianBlur(cur_small, (0, 0), sigma)
+        ref = np.ascontiguousarray(cv2.GaussianBlur(ref_small, (0, 0), sigma), np.float32)
+        values = np.ascontiguousarray(np.asarray(cur, np.float32)[vs, us])
+        for _ in range(p.iterations):
+            _, inside = _gauss_newton_system(
+                ref, floor_x, floor_y, values, G_inv, pose, p.huber_grey, normal, rhs
+            )
+            if inside < p.min_points:
+                return None
+            try:
+                step = -np.linalg.solve(normal + 1e-6 * np.trace(normal) * np.eye(3), rhs)
+            except np.linalg.LinAlgError:
+                return None
+            pose += step
+            if math.hypot(step[0], step[1]) < 1e-5 and abs(step[2]) < 1e-5:
+                break
+    # The last pose's share (the last step is tiny, or the iterations ran out).
+    inlier_share, inside = _gauss_newton_system(
+        ref, floor_x, floor_y, values, G_inv, pose, p.huber_grey, normal, rhs
+    )
+    turn = math.remainder(float(pose[2]) - T_world_ref[2], math.tau)
+    shift = math.hypot(float(pose[0]) - T_world_ref[0], float(pose[1]) - T_world_ref[1])
+    if (
+        abs(turn) > p.max_turn_rad
+        or shift > p.max_shift_m
+        or inside < p.min_points
+        or inlier_share < p.min_inlier_share
+    ):
+        return None
+    return float(pose[0]), float(pose[1]), float(pose[2])
+
+
+def reference_pose_from_views(
+    gray_cur: NDArray[np.uint8],
+    gray_ref: NDArray[np.uint8],
+    floor_mask: NDArray[np.bool_],
+    H_ground_from_image: NDArray[np.float64],
+    T_world_ref: tuple[float, float, float],
+    T_world_cur: tuple[float, float, float],
+    params: RefineParams | None = None,
+) -> tuple[float, float, float] | None:
+    """The parallax test's reference pose from odometry's, checked against the views:
+    `refine_reference_pose` from odometry; where that fails (a slip beyond its basin, a
+    texture it slid along), the bird's-eye `align_reference_pose` with its wide heading
+    search first, then the refinement's finest pass from there (or the alignment alone).
+    None when neither lines the floors up: the caller decides what odometry alone is
+    worth.
+    """
+    p = params if params is not None else RefineParams()
+    refined = refine_reference_pose(
+        gray_cur, gray_ref, floor_mask, H_ground_from_image, T_world_ref, T_world_cur, p
+    )
+    if refined is not None:
+        return refined
+    aligned = align_reference_pose(
+        gray_cur, gray_ref, floor_mask, H_ground_from_image, T_world_ref, T_world_cur
+    )
+    if aligned is None:
+        return None
+    finest = replace(p, sigmas_px=p.sigmas_px[-1:])
+    again = refine_reference_pose(
+        gray_cur, gray_ref, floor_mask, H_ground_from_image, aligned, T_world_cur, finest
+    )
+    return aligned if again is None else again
+
+
+@numba.njit(cache=True, nogil=True, fastmath=True, error_model="numpy")
+def _gauss_newton_system(
+    ref: NDArray[np.float32],
+    floor_x: NDArray[np.float64],
+    floor_y: NDArray[np.float64],
+    values: NDArray[np.float32],
+    G_inv: NDArray[np.float64],
+    pose: NDArray[np.float64],
+    huber: float,
+    normal: NDArray[np.float64],
+    rhs: NDArray[np.float64],
+) -> tuple[float, int]:
+    """One Gauss-Newton system of `refine_reference_pose`: the Huber-weighted normal
+    equations (``normal`` @ step = -``rhs``) of the residuals ref(q) - values, q being
+    where the reference pose ``pose`` sees the world floor points (floor_x, floor_y).
+    Returns the share of the samples inside the reference view that match within
+    ``huber`` grey levels, and how many are inside. The reference's gradient is its
+    central difference at q."""
+    hr, wr = ref.shape
+    cs, sn = math.cos(pose[2]), math.sin(pose[2])
+    normal[:, :] = 0.0
+    rhs[:] = 0.0
+    inside = 0
+    matched = 0
+    for i in range(floor_x.shape[0]):
+        d0 = floor_x[i] - pose[0]
+        d1 = floor_y[i] - pose[1]
+        # The floor point in the reference robot's frame, then in its image.
+        r0 = cs * d0 + sn * d1
+        r1 = -sn * d0 + cs * d1
+        h2 = G_inv[2, 0] * r0 + G_inv[2, 1] * r1 + G_inv[2, 2]
+        if abs(h2) < 1e-12:
+            continue
+        qx = (G_inv[0, 0] * r0 + G_inv[0, 1] * r1 + G_inv[0, 2]) / h2
+        qy = (G_inv[1, 0] * r0 + G_inv[1, 1] * r1 + G_inv[1, 2]) / h2
+        if not (1.0 <= qx < wr - 2.0 and 1.0 <= qy < hr - 2.0):
+            continue
+        ix = int(qx)
+        iy = int(qy)
+        fx = qx - ix
+        fy = qy - iy
+        # Bilinear value and central-difference gradient from the 4x4 block around q.
+        a = ref[iy, ix] + fx * (ref[iy, ix + 1] - ref[iy, ix])
+        b = ref[iy + 1, ix] + fx * (ref[iy + 1, ix + 1] - ref[iy + 1, ix])
+        value = a + fy * (b - a)
+        gu0 = 0.5 * (ref[iy, ix + 1] - ref[iy, ix - 1])
+        gu1 = 0.5 * (ref[iy, ix + 2] - ref[iy, ix])
+        gu2 = 0.5 * (ref[iy + 1, ix + 1] - ref[iy + 1, ix - 1])
+        gu3 = 0.5 * (ref[iy + 1, ix + 2] - ref[iy + 1, ix])
+        top = gu0 + fx * (gu1 - gu0)
+        low = gu2 + fx * (gu3 - gu2)
+        g_u = top + fy * (low - top)
+        gv0 = 0.5 * (ref[iy + 1, ix] - ref[iy - 1, ix])
+        gv1 = 0.5 * (ref[iy + 1, ix + 1] - ref[iy - 1, ix + 1])
+        gv2 = 0.5 * (ref[iy + 2, ix] - ref[iy, ix])
+        gv3 = 0.5 * (ref[iy + 2, ix + 1] - ref[iy, ix + 1])
+        top = gv0 + fx * (gv1 - gv0)
+        low = gv2 + fx * (gv3 - gv2)
+        g_v = top + fy * (low - top)
+        # d(grey) / d(the floor point in the reference robot's frame) ...
+        e0 = (g_u * (G_inv[0, 0] - qx * G_inv[2, 0]) + g_v * (G_inv[1, 0] - qy * G_inv[2, 0])) / h2
+        e1 = (g_u * (G_inv[0, 1] - qx * G_inv[2, 1]) + g_v * (G_inv[1, 1] - qy * G_inv[2, 1])) / h2
+        # ... and of that point with respect to the reference pose (x, y, heading).
+        j0 = -cs * e0 + sn * e1
+        j1 = -sn * e0 - cs * e1
+        j2 = r1 * e0 - r0 * e1
+        residual = value - values[i]
+        inside += 1
+        weight = 1.0
+        if abs(residual) > huber:
+            weight = huber / abs(residual)
+        else:
+            matched += 1
+        normal[0, 0] += weight * j0 * j0
+        normal[0, 1] += weight * j0 * j1
+        normal[0, 2] += weight * j0 * j2
+        normal[1, 1] += weight * j1 * j1
+        normal[1, 2] += weight * j1 * j2
+        normal[2, 2] += weight * j2 * j2
+        rhs[0] += weight * j0 * residual
+        rhs[1] += weight * j1 * residual
+        rhs[2] += weight * j2 * residual
+    normal[1, 0] = normal[0, 1]
+    normal[2, 0] = normal[0, 2]
+    normal[2, 1] = normal[1, 2]
+    return (matched / inside if inside > 0 else 0.0), inside
 
 
 @dataclass(frozen=True)

@@ -441,6 +441,78 @@ def test_a_floor_without_texture_is_not_aligned_and_shapes_are_checked() -> None
         planar.align_reference_pose(plain[0][:-1], plain[1], floor, G, REF_POSE, CUR_POSE)
 
 
+def pose_error(pose: tuple[float, float, float] | None) -> tuple[float, float]:
+    """(metres, degrees) from the true reference pose."""
+    assert pose is not None
+    shift = math.hypot(pose[0] - REF_POSE[0], pose[1] - REF_POSE[1])
+    return shift, abs(math.degrees(math.remainder(pose[2] - REF_POSE[2], math.tau)))
+
+
+def test_refinement_matches_the_views_pixel_for_pixel_where_the_alignment_stops_short(
+    synthetic: Synthetic,
+) -> None:
+    # The same slip as above: 1.5 degrees and 4 mm. The bird's-eye alignment gets
+    # within a tenth of a degree; comparing the test's own pixels gets within a
+    # hundredth, and then the floor stands up no more than with the true pose.
+    view, colour, exact = synthetic
+    ref = synthetic_view(REF_POSE)
+    slipped = (REF_POSE[0] + 0.004, REF_POSE[1], REF_POSE[2] + math.radians(1.5))
+    zone = open_floor(view, colour)
+    floor = colour | zone
+    refined = planar.refine_reference_pose(view.gray, ref.gray, floor, G, slipped, CUR_POSE)
+    shift_m, turn_deg = pose_error(refined)
+    assert shift_m < 0.0005 and turn_deg < 0.02
+    aligned = planar.align_reference_pose(view.gray, ref.gray, floor, G, slipped, CUR_POSE)
+    aligned_shift_m, aligned_turn_deg = pose_error(aligned)
+    assert turn_deg < aligned_turn_deg and shift_m < aligned_shift_m
+    assert planar.reference_pose_from_views(
+        view.gray, ref.gray, floor, G, slipped, CUR_POSE
+    ) == pytest.approx(refined)
+    assert refined is not None
+    result = planar.confirm_floor(
+        colour, view.gray, ref.gray, G, refined, CUR_POSE, CAMERA_XY, return_standing=True
+    )
+    assert isinstance(result, planar.ParallaxResult)
+    assert standing_share(result, zone) <= standing_share(exact, zone) + 0.005
+
+
+def test_a_slip_beyond_the_refinements_reach_is_aligned_first() -> None:
+    # 3 degrees, and a refinement with its fine pass only: from odometry it does not
+    # converge; the wide heading search of the alignment brings it within reach.
+    view, ref = synthetic_view(CUR_POSE), synthetic_view(REF_POSE)
+    floor = np.zeros(view.gray.shape, bool)
+    floor[COLOUR_TOP_ROW:] = True
+    floor |= open_floor(view, floor)
+    slipped = (REF_POSE[0], REF_POSE[1] - 0.003, REF_POSE[2] - math.radians(3.0))
+    fine = planar.RefineParams(sigmas_px=(0.5,))
+    assert (
+        planar.refine_reference_pose(view.gray, ref.gray, floor, G, slipped, CUR_POSE, fine) is None
+    )
+    shift_m, turn_deg = pose_error(
+        planar.reference_pose_from_views(view.gray, ref.gray, floor, G, slipped, CUR_POSE, fine)
+    )
+    assert shift_m < 0.0005 and turn_deg < 0.02
+
+
+def test_a_floor_without_texture_is_not_refined_nor_one_that_does_not_match() -> None:
+    rng = np.random.default_rng(0)
+    h, w = MODEL.height_px, MODEL.width_px
+    plain = [np.clip(120 + rng.normal(0, 2, (h, w)), 0, 255).astype(np.uint8) for _ in "ab"]
+    floor = np.zeros((h, w), bool)
+    floor[COLOUR_TOP_ROW:] = True
+    assert planar.refine_reference_pose(plain[0], plain[1], floor, G, REF_POSE, CUR_POSE) is None
+    assert (
+        planar.reference_pose_from_views(plain[0], plain[1], floor, G, REF_POSE, CUR_POSE) is None
+    )
+    # Two unrelated textures (what fills the view is not the floor the pose predicts):
+    # whatever the steps found, too few samples match in the end.
+    view = synthetic_view(CUR_POSE)
+    other = np.ascontiguousarray(view.gray[::-1, ::-1])
+    assert planar.refine_reference_pose(view.gray, other, floor, G, REF_POSE, CUR_POSE) is None
+    with pytest.raises(ValueError, match="must match"):
+        planar.refine_reference_pose(plain[0][:-1], plain[1], floor, G, REF_POSE, CUR_POSE)
+
+
 # -- standing_feet -------------------------------------------------------------------------
 
 FEET_ROWS_M = planar.row_ground_distance_m(G, 640, 480)
