@@ -44,12 +44,16 @@ from app.perception.planar import (
     standing_feet,
     view_homography,
 )
-from app.perception.standing import horizon_rows, standing_across_horizon
+from app.perception.standing import horizon_rows, standing_across_horizon, walls_across_horizon
 
 _NO_SECOND_MAP = np.empty((0, 0), dtype=np.uint16)
 """cv2.remap's second map, unused with the fixed-point `BirdseyeMap.nearest_map`."""
 PARALLAX_PERIOD_S = 0.2
 """The parallax test runs at most this often (~2-3 ms a frame, nogil)..."""
+WALLS_PERIOD_S = 0.2
+"""Walls are proven by the horizon (`walls_across_horizon`) at most this often: they
+stand still, their feet stay in the floor memory, and a frame's test and its marking
+cost ~8 ms of the mapping stage."""
 PARALLAX_CARRY_S = 0.5
 """...and its confirmed floor (and the floor it cut off behind what stands) is carried to
 the frames between for at most this long."""
@@ -242,6 +246,7 @@ class GroundMapper:
         self.parallax_unaligned = 0
         """Of those, the tests whose views' floors could not be aligned (for the report)."""
         self._parallax_due_s = -math.inf
+        self._walls_due_s = -math.inf
         self._row_distance: tuple[tuple[int, ...], NDArray[np.float64]] | None = None
         self._confirmed: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
         self._cut: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
@@ -283,6 +288,7 @@ class GroundMapper:
             if cut_px is not None:
                 floor_mask = floor_mask & ~cut_px
         standing_px: NDArray[np.bool_] | None = None
+        walls_px: NDArray[np.bool_] | None = None
         if image is not None and image.ndim == 3 and self.horizon_row is not None:
             standing_px = standing_across_horizon(floor_mask, image, self.horizon_row)
             if standing_px.any():
@@ -290,6 +296,13 @@ class GroundMapper:
                 floor_mask = floor_mask & ~standing_px
             else:
                 standing_px = None
+            # Not-floor surfaces from where the floor ends to past the horizon: walls,
+            # proven standing though plain (the parallax test sees nothing on them).
+            if now_s >= self._walls_due_s:
+                self._walls_due_s = now_s + WALLS_PERIOD_S
+                walls_px = walls_across_horizon(floor_mask, image, self.horizon_row)
+                if not walls_px.any():
+                    walls_px = None
         patch = birdseye_floor_patch(floor_mask, self.birdseye)
         if unsure_mask is not None:
             unsure = birdseye_floor_patch(unsure_mask, self.birdseye) == FLOOR
@@ -324,6 +337,8 @@ class GroundMapper:
         # longer known floor (a textureless face can pass parallax as flat) and its
         # colour is unlearned.
         standing_image = standing_px
+        if walls_px is not None:
+            standing_image = walls_px if standing_image is None else standing_image | walls_px
         ground_floor = floor_mask
         if tested is not None:
             # What parallax found flat is known floor from now on.
@@ -556,13 +571,7 @@ class GroundMapper:
         cells = self.grid.classify()
         world = self.grid.world_grid
         cells[self.given_up.seen & (cells == UNKNOWN)] = FREE
-        probe_cells = None
-        if self.mapping.frontier_probe_edges:
-            standing = inflate_obstacles(
-                self.memory.standing != 0, PROBE_STANDING_REACH_M / world.cell_m
-            )
-            # A probe given up: its edge is not looked at again.
-            probe_cells = ~(standing | self.given_up.no_probe)
+        probe_cells = self.frontier_probe_cells() if self.mapping.frontier_probe_edges else None
         return find_frontiers(
             cells,
             world,
@@ -570,6 +579,15 @@ class GroundMapper:
             self.frontier_params,
             probe_cells=probe_cells,
         )
+
+    def frontier_probe_cells(self) -> NDArray[np.bool_]:
+        """World cells whose occupied edges the frontier search may probe: not within
+        `PROBE_STANDING_REACH_M` of anything seen standing, nor near a probe given up
+        (its edge is not looked at again)."""
+        standing = inflate_obstacles(
+            self.memory.standing != 0, PROBE_STANDING_REACH_M / self.grid.world_grid.cell_m
+        )
+        return np.asarray(~(standing | self.given_up.no_probe), dtype=np.bool_)
 
 
 def _camera_xy(

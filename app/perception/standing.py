@@ -267,3 +267,95 @@ def _grow_sideways(
     grown = seeds.copy()
     grown[rows] |= touching[labels]
     return grown
+
+
+def walls_across_horizon(
+    floor_mask: NDArray[np.bool_],
+    image_bgr: NDArray[np.uint8],
+    horizon_row: NDArray[np.int64],
+    params: HorizonParams | None = None,
+) -> NDArray[np.bool_]:
+    """The not-floor pixels that belong to surfaces standing up where the floor ends: in
+    each column whose floor runs up from the bottom of the image, the not-floor run above
+    it, when that run reaches past the horizon and is one surface from its foot up (its
+    colour profile, foot to horizon, splits nowhere by ``min_step`` or more).
+
+    Floor never reaches the horizon, so one surface that runs from where the floor ends
+    to above the horizon stands there: a plain wall, whose lower part gives the parallax
+    test no texture to tell it from a change of floor. A rug, a threshold or another
+    room's floor under the run changes colour somewhere below the horizon and is left
+    unproven (a floor of exactly the wall's colour behind an edge would be taken for
+    the wall).
+
+    Returns (H, W) bool, True on the run's pixels below the horizon in such columns.
+    """
+    p = params if params is not None else HorizonParams()
+    mask = np.asarray(floor_mask, dtype=bool)
+    height, width = mask.shape
+    if image_bgr.shape[:2] != mask.shape or horizon_row.shape != (width,):
+        raise ValueError(
+            f"image {image_bgr.shape[:2]}, mask {mask.shape} and horizon {horizon_row.shape} "
+            "must agree"
+        )
+    walls = np.zeros_like(mask)
+    s = max(1, round(height / p.search_rows))
+    small_mask = mask[::s, ::s]
+    small_h, small_w = small_mask.shape
+    small_rows = np.arange(small_h)[:, None]
+    # Each column's floor from the bottom up, and the not-floor run above it.
+    from_bottom = small_mask[::-1]
+    bottom_run = np.where(from_bottom.all(axis=0), small_h, np.argmin(from_bottom, axis=0))
+    foot = small_h - 1 - bottom_run  # the run's lowest row (-1: floor to the top)
+    above_foot = (small_rows <= foot[None, :]) & small_mask
+    # The run ends under the next floor pixel above the foot (or at the top).
+    run_top = np.where(
+        above_foot.any(axis=0), small_h - 1 - np.argmax(above_foot[::-1], axis=0) + 1, 0
+    )
+    above = max(1, round(p.min_above_frac * height))
+    small_leak = np.floor((horizon_row[::s] - above) / s).astype(np.int64)
+    small_horizon = np.ceil(horizon_row[::s] / s).astype(np.int64)
+    candidate = (bottom_run > 0) & (foot >= 0) & (run_top <= small_leak) & (foot >= small_horizon)
+    cols = np.flatnonzero(candidate)
+    if cols.size == 0:
+        return walls
+    lab = cv2.cvtColor(
+        cv2.resize(image_bgr, (small_w, small_h), interpolation=cv2.INTER_AREA), cv2.COLOR_BGR2LAB
+    ).astype(np.float32)
+    lab[..., 0] *= 100.0 / 255.0  # OpenCV's 8-bit L back to CIELAB's 0..100
+    # The profile tested: from just above the horizon (by the leak margin) down to the
+    # foot, less the rows just above it: shrunk, the foot's own row mixes the surface
+    # with the floor, and a segmenter's floor ends a few pixels off the true junction.
+    junction = 1 + max(1, round(p.min_above_frac * height / s))
+    lo, hi = small_leak[cols], np.maximum(foot[cols] - junction, 0)
+    in_span = (small_rows >= lo[None, :]) & (small_rows <= hi[None, :])
+    profile = lab[:, cols, :] * in_span[..., None]
+    csum = np.cumsum(profile, axis=0)
+    count = np.cumsum(in_span, axis=0).astype(np.float32)
+    index = np.arange(cols.size)
+    total_sum = csum[hi, index]
+    total_n = count[hi, index]
+    upper_sum, upper_n = csum, count  # rows <= k
+    lower_sum, lower_n = total_sum[None] - upper_sum, total_n[None] - upper_n
+    min_rows = max(1, round(p.min_floor_frac * height / s))
+    with np.errstate(divide="ignore", invalid="ignore"):
+        step = np.linalg.norm(
+            upper_sum / upper_n[..., None] - lower_sum / lower_n[..., None], axis=2
+        )
+    splittable = in_span & (upper_n >= min_rows) & (lower_n >= min_rows) & np.isfinite(step)
+    # The best split (least squares: the largest drop of the sum of squares) and its step.
+    gain = np.where(splittable, upper_n * lower_n / total_n[None] * step**2, -1.0)
+    best = gain.argmax(axis=0)
+    # A run whose foot is too near the horizon to show its colour profile proves nothing.
+    one_surface = (total_n >= 2 * min_rows) & (
+        ~splittable[best, index] | (step[best, index] < p.min_step)
+    )
+    small_walls = np.zeros_like(small_mask)
+    wall_cols = cols[one_surface]
+    small_walls[:, wall_cols] = (small_rows >= small_horizon[wall_cols][None, :]) & (
+        small_rows <= foot[wall_cols][None, :]
+    )
+    up = cv2.resize(
+        small_walls.view(np.uint8), (width, height), interpolation=cv2.INTER_NEAREST
+    ).astype(bool)
+    walls[...] = up & ~mask
+    return walls

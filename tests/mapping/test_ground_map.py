@@ -203,6 +203,33 @@ def test_a_floor_coloured_box_the_mask_calls_floor_is_an_obstacle_by_the_horizon
     assert (to_obstacle_m[rc[:, 0], rc[:, 1]] <= 0.15).mean() >= 0.5
 
 
+def test_a_plain_walls_foot_is_remembered_standing_and_kept_from_edge_probes() -> None:
+    """The left room's plain wall 1.5 m ahead: parallax sees nothing on it, but it runs
+    from where the floor ends to past the horizon, so its foot is marked standing and
+    the frontier search does not send the robot to probe it as an unproven edge."""
+    mapper, renderer, segmenter = sim_mapper(standing_by_horizon=True, parallax_floor=False)
+    plain, _, _ = sim_mapper(standing_by_horizon=False, parallax_floor=False)
+    pose = Pose2D(1.5, 3.0, math.pi)  # facing the wall at x = 0
+    frame = renderer.render(pose)  # type: ignore[attr-defined]
+    mask = segmenter.segment(frame.image).floor_mask  # type: ignore[attr-defined]
+    mapper.update(mask, pose, 0.0, frame.image)
+    plain.update(mask, pose, 0.0, frame.image)
+    assert not (plain.memory.standing != 0).any()
+    x, y = mapper.memory.world_grid.cell_centers()
+    marked = mapper.memory.standing != 0
+    assert marked.sum() >= 10
+    # All at the wall's foot (its inner face is at x = 0.05 m), across the view.
+    assert np.all(x[marked] <= 0.2)
+    assert y[marked].max() - y[marked].min() >= 0.8
+    # The wall's occupied cells are no edge to probe (the mapper without the test sees
+    # them as unproven edges).
+    occupied = mapper.grid.classify() == OCCUPIED
+    wall = occupied & (x <= 0.2)
+    assert wall.sum() >= 10
+    assert not (mapper.frontier_probe_cells() & wall).any()
+    assert plain.frontier_probe_cells()[wall].all()
+
+
 def test_unsure_pixels_give_no_evidence_and_the_rest_fuses_as_without() -> None:
     """A deferred learned-floor pass: where it could have found floor the first pass's
     "not floor" must not become a wall (the pass, later, may call it floor)."""

@@ -10,7 +10,12 @@ import cv2
 import numpy as np
 import pytest
 
-from app.perception.standing import HorizonParams, horizon_rows, standing_across_horizon
+from app.perception.standing import (
+    HorizonParams,
+    horizon_rows,
+    standing_across_horizon,
+    walls_across_horizon,
+)
 
 H, W = 240, 320
 HORIZON = 40
@@ -187,3 +192,81 @@ def test_a_rendered_floor_coloured_box_is_found_standing() -> None:
     assert (standing & box).sum() >= 0.95 * box.sum()
     # The floor lost is the base line's width times the coarse search's 4 px rows.
     assert (standing & frame.floor_mask).sum() <= 0.02 * frame.floor_mask.sum()
+
+
+# -- walls_across_horizon ---------------------------------------------------------------
+
+
+def _floor_from(row: int) -> np.ndarray:
+    mask = np.zeros((H, W), bool)
+    mask[row:] = True
+    return mask
+
+
+def test_a_plain_wall_from_the_floors_end_past_the_horizon_stands() -> None:
+    # The scene's grey wall meets the floor at row 50, 10 rows below the horizon; the
+    # mask's floor ends there. Standing: the wall below the horizon, every column.
+    walls = walls_across_horizon(_floor_from(50), _scene(), np.full(W, HORIZON), PARAMS)
+    expected = np.zeros((H, W), bool)
+    expected[HORIZON:50] = True
+    np.testing.assert_array_equal(walls, expected)
+
+
+def test_a_rug_between_the_floor_and_the_wall_is_not_taken_for_the_wall() -> None:
+    # A dark rug (rows 50-89) the mask leaves out, under the same wall: the run above the
+    # floor changes colour below the horizon, so nothing in it is proven standing.
+    image = _scene()
+    image[50:90] = (40, 40, 90)
+    assert _lab_distance((40, 40, 90), (150, 150, 150)) > 10
+    walls = walls_across_horizon(_floor_from(90), image, np.full(W, HORIZON), PARAMS)
+    assert not walls.any()
+
+
+def test_what_ends_below_the_horizon_or_has_no_floor_under_it_is_not_a_wall() -> None:
+    image = _scene(box_bgr=(30, 30, 200))
+    # The box left out of the floor, its top below the horizon: floor again above it.
+    mask = _floor_from(50) & ~_box_mask()
+    low_box = mask.copy()
+    low_box[: BOX_ROWS[1] - 60] |= _box_mask()[: BOX_ROWS[1] - 60]  # the box's top is floor
+    walls = walls_across_horizon(low_box, image, np.full(W, HORIZON), PARAMS)
+    assert not walls[:, BOX_COLS[0] : BOX_COLS[1]].any()
+    # Columns whose bottom row is no floor (a wall right ahead): nothing to stand on.
+    no_bottom = _floor_from(50)
+    no_bottom[-1, :50] = False
+    walls = walls_across_horizon(no_bottom, _scene(), np.full(W, HORIZON), PARAMS)
+    assert not walls[:, :50].any() and walls[HORIZON:50, 50:].all()
+    with pytest.raises(ValueError, match="must agree"):
+        walls_across_horizon(_floor_from(50), _scene(), np.full(W - 1, HORIZON))
+
+
+def test_rendered_walls_stand_and_the_floor_never_does() -> None:
+    """Frames of the shipped flat, as the shipped segmenter sees them: the proven walls
+    lie on true obstacles, and they cover most of the walls met where the floor ends."""
+    from app.config import load_config
+    from app.mapping.frames import Pose2D
+    from app.mapping.ground_map import image_horizon_rows
+    from app.perception.pipeline import FloorSegmenter
+    from app.sim.setup import camera_model, renderer_from_config, sim_floor_calibration
+
+    root = Path(__file__).resolve().parents[2]
+    config = load_config(root / "config.toml", sim={"world_file": "two-rooms"})
+    renderer = renderer_from_config(config)
+    horizon = image_horizon_rows(sim_floor_calibration(camera_model(config)))
+    segmenter = FloorSegmenter(config.perception)
+    found = off_wall = 0
+    # Facing the left room's walls from its middle, and the doorway.
+    for pose in [(2.0, 3.0, 0.0), (2.0, 3.0, math.pi / 2), (2.0, 3.0, math.pi), (3.2, 3.0, 0.1)]:
+        frame = renderer.render(Pose2D(*pose))
+        walls = walls_across_horizon(
+            segmenter.segment(frame.image).floor_mask, frame.image, horizon
+        )
+        obstacle = ~frame.floor_mask
+        # The segmenter's floor ends a few pixels short of a wall's true foot, and the
+        # wall is taken from there: true floor within 8 px below an obstacle is its foot.
+        near_foot = obstacle.copy()
+        for k in range(1, 9):
+            near_foot[k:] |= obstacle[:-k]
+        found += int((walls & obstacle).sum())
+        off_wall += int((walls & ~near_foot).sum())
+    assert found > 20000
+    assert off_wall <= 0.002 * found
