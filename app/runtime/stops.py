@@ -8,7 +8,11 @@ Two kinds of stop, as robot safety standards name them:
 - **latched fault**: a cause that keeps coming back (``safety.fault_latch_repeats``
   times within ``safety.fault_latch_window_s``) or a device gone for longer than
   ``safety.device_lost_latch_s`` means something is broken: autonomy stops and stays
-  stopped until a person resets the fault.
+  stopped until a person resets the fault. Coming back counts after the robot went on:
+  a cause that returns while its stop still holds (clear for less than
+  ``resume_after_clear_s``) continues that stop (a map that arrives just late three
+  times in half a second is one stall, not three), and a device's time gone counts
+  from the stop's start.
 
 The forward-only layers (too little clearance, a safe zone that is not floor) are
 recorded here too, so the last stop is always explained, but they neither hold nor latch:
@@ -109,6 +113,9 @@ class StopPolicy:
         self.faults_latched = 0
         self._active: dict[str, _Episode] = {}
         self._cleared_s: dict[str, float] = {}
+        self._cleared_since_s: dict[str, float] = {}
+        """When the stop a cleared cause ended began (a return within the resume time
+        continues it)."""
         self._recent: dict[str, deque[float]] = {cause: deque() for cause in STOP_RULES}
 
     def observe(self, cause: str, problem: str | None, now_s: float) -> StopEvent | None:
@@ -120,7 +127,18 @@ class StopPolicy:
             if episode is not None:
                 del self._active[cause]
                 self._cleared_s[cause] = now_s
+                self._cleared_since_s[cause] = episode.since_s
             return None
+        if episode is None:
+            cleared_s = self._cleared_s.pop(cause, None)
+            since_s = self._cleared_since_s.pop(cause, now_s)
+            if (
+                rule.zeroes_motors
+                and cleared_s is not None
+                and now_s - cleared_s < self.safety.resume_after_clear_s
+            ):
+                # Back before the robot went on: the same stop, still holding.
+                episode = self._active[cause] = _Episode(problem, since_s)
         if episode is not None:
             episode.reason = problem
             lost_s = now_s - episode.since_s
@@ -130,7 +148,6 @@ class StopPolicy:
                 )
             return None
         self._active[cause] = _Episode(problem, now_s)
-        self._cleared_s.pop(cause, None)
         self.stops_by_cause[cause] += 1
         event = StopEvent(cause, problem, now_s, self.wall_clock())
         self.last_stop = event

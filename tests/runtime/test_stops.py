@@ -85,3 +85,38 @@ def test_stale_perception_never_latches_by_duration_and_forward_layers_never_hol
     assert stops.holding(200.0) is None  # only takes forward motion away (the gate does)
     assert stops.active("not_floor") == "safe zone is not floor"
     assert stops.last_stop is not None and stops.last_stop.cause == "not_floor"
+
+
+def test_a_cause_back_before_the_robot_went_on_continues_its_stop_and_is_no_repeat() -> None:
+    # A mapping stall: the map arrives just late three times in half a second. The robot
+    # never went on in between: one protective stop, not a latched fault.
+    stops = policy(resume_after_clear_s=1.0, fault_latch_repeats=3, fault_latch_window_s=60.0)
+    first = stops.observe("stale", "map 504 ms old (> 500 ms)", 10.0)
+    assert first is not None and not first.latched
+    for t in (10.1, 10.3):
+        stops.observe("stale", None, t)
+        assert stops.observe("stale", "map 510 ms old (> 500 ms)", t + 0.05) is None
+    stops.observe("stale", None, 10.5)
+    assert stops.latched is None and stops.stops_by_cause["stale"] == 1
+    assert stops.holding(11.4) is not None and stops.holding(11.5) is None
+    # Once it went on, each return is a stop of its own, and the third latches.
+    assert not stops.observe("stale", "map 600 ms old", 12.0).latched  # type: ignore[union-attr]
+    stops.observe("stale", None, 12.2)
+    event = stops.observe("stale", "map 700 ms old", 14.0)
+    assert event is not None and event.latched and "3 times within 60 s" in event.reason
+
+
+def test_a_flapping_device_counts_its_time_gone_from_the_stops_start() -> None:
+    # The Uno's link drops and comes back every half second: the robot never goes on,
+    # and after 5 s of that the stop latches as a device gone.
+    stops = policy(resume_after_clear_s=1.0, device_lost_latch_s=5.0)
+    latched = None
+    t = 0.0
+    while latched is None and t < 10.0:
+        event = stops.observe("link", "Uno reconnecting", t)
+        if event is not None and event.latched:
+            latched = event
+        stops.observe("link", None, t + 0.25)
+        t += 0.5
+    assert latched is not None and "more than 5 s" in latched.reason
+    assert 5.0 < latched.monotonic_s <= 5.5

@@ -45,7 +45,7 @@ def test_metrics_report_the_service(client: TestClient, service: FakeService) ->
     service.link.stats.timeouts = 4
     service.link.stats.reconnects = 5
     service.floors.publish(floor_msg(1, zone_floor_confidence=0.25))
-    for t in (0.0, 1.0, 2.0):  # three link blips in a minute latch a fault
+    for t in (0.0, 5.0, 10.0):  # three link blips in a minute, each resumed from, latch
         service.policy.observe("link", "Uno reconnecting", t)
         service.policy.observe("link", None, t + 0.5)
 
