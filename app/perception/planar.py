@@ -762,8 +762,7 @@ def refine_reference_pose(
     h, w = _check_views(floor_mask, gray_cur, gray_ref)
     k = p.downscale
     small = (w // k, h // k)
-    S = np.array([[k, 0.0, (k - 1) / 2.0], [0.0, k, (k - 1) / 2.0], [0.0, 0.0, 1.0]])
-    G = np.asarray(H_ground_from_image, dtype=np.float64) @ S
+    G = _downscaled_homography(H_ground_from_image, k)
     # Away from the colour floor's edges by the comparison's reach.
     mask = cv2.erode(
         np.ascontiguousarray(floor_mask[::k, ::k][: small[1], : small[0]], np.uint8),
@@ -1043,9 +1042,7 @@ def confirm_floor(
         )
 
     k = p.downscale
-    # Pixel centres of the small image in the full one: u_full = k * u + (k - 1) / 2.
-    S = np.array([[k, 0.0, (k - 1) / 2.0], [0.0, k, (k - 1) / 2.0], [0.0, 0.0, 1.0]])
-    G = np.asarray(H_ground_from_image, dtype=np.float64) @ S
+    G = _downscaled_homography(H_ground_from_image, k)
     epipole = epipole_px(G, T_world_ref, T_world_cur, camera_xy_robot)
     if epipole is None:
         return result(floor_mask)
@@ -1258,6 +1255,13 @@ def standing_feet(
         ),
         dtype=np.bool_,
     )
+
+
+def _downscaled_homography(H_ground_from_image: NDArray[np.float64], k: int) -> NDArray[np.float64]:
+    """The floor homography of images ``k`` times smaller (pixel centres of the small
+    image in the full one: u_full = k * u + (k - 1) / 2)."""
+    S = np.array([[k, 0.0, (k - 1) / 2.0], [0.0, k, (k - 1) / 2.0], [0.0, 0.0, 1.0]])
+    return np.asarray(np.asarray(H_ground_from_image, dtype=np.float64) @ S, np.float64)
 
 
 def _small_gray(gray: NDArray[np.uint8], size: tuple[int, int]) -> NDArray[np.uint8]:

@@ -93,13 +93,8 @@ def standing_across_horizon(
     (H, W) bool: True where the mask says floor but the pixel is a standing surface.
     """
     p = params if params is not None else HorizonParams()
-    mask = np.asarray(floor_mask, dtype=bool)
+    mask = _checked_mask(floor_mask, image_bgr, horizon_row)
     height, width = mask.shape
-    if image_bgr.shape[:2] != mask.shape or horizon_row.shape != (width,):
-        raise ValueError(
-            f"image {image_bgr.shape[:2]}, mask {mask.shape} and horizon {horizon_row.shape} "
-            "must agree"
-        )
     standing = np.zeros_like(mask)
     leak_row = horizon_row - max(1, round(p.min_above_frac * height))
     # The cheap check first: most frames have no floor above the horizon at all.
@@ -109,11 +104,7 @@ def standing_across_horizon(
     s = max(1, round(height / p.search_rows))
     small_mask = mask[::s, ::s]
     small_h, small_w = small_mask.shape
-    lab = cv2.cvtColor(
-        cv2.resize(image_bgr, (small_w, small_h), interpolation=cv2.INTER_AREA), cv2.COLOR_BGR2LAB
-    ).astype(np.float32)
-    # OpenCV's 8-bit Lab: L scaled by 255/100, a and b offset by 128. Back to CIELAB.
-    lab[..., 0] *= 100.0 / 255.0
+    lab = _small_lab(image_bgr, (small_w, small_h))
     small_horizon = np.ceil(horizon_row[::s] / s).astype(np.int64)
     small_leak = np.floor(leak_row[::s] / s).astype(np.int64)
     small_rows = np.arange(small_h)[:, None]
@@ -207,6 +198,29 @@ def standing_across_horizon(
     return standing
 
 
+def _checked_mask(
+    floor_mask: NDArray[np.bool_], image_bgr: NDArray[np.uint8], horizon_row: NDArray[np.int64]
+) -> NDArray[np.bool_]:
+    """``floor_mask`` as bool, once the image and the horizon are checked to match it."""
+    mask = np.asarray(floor_mask, dtype=bool)
+    if image_bgr.shape[:2] != mask.shape or horizon_row.shape != (mask.shape[1],):
+        raise ValueError(
+            f"image {image_bgr.shape[:2]}, mask {mask.shape} and horizon {horizon_row.shape} "
+            "must agree"
+        )
+    return mask
+
+
+def _small_lab(image_bgr: NDArray[np.uint8], size: tuple[int, int]) -> NDArray[np.float32]:
+    """``image_bgr`` shrunk to ``size`` (width, height) by area, in CIELAB (float32)."""
+    lab = cv2.cvtColor(
+        cv2.resize(image_bgr, size, interpolation=cv2.INTER_AREA), cv2.COLOR_BGR2LAB
+    ).astype(np.float32)
+    # OpenCV's 8-bit Lab: L scaled by 255/100, a and b offset by 128. Back to CIELAB.
+    lab[..., 0] *= 100.0 / 255.0
+    return np.asarray(lab, np.float32)
+
+
 def _running_median(values: NDArray[np.int64], use: NDArray[np.bool_]) -> NDArray[np.int64]:
     """Each used value replaced by the median of it and its used neighbours up to
     `BASE_MEDIAN_HALF` places either side (a plank seam under one column does not move
@@ -290,13 +304,8 @@ def walls_across_horizon(
     Returns (H, W) bool, True on the run's pixels below the horizon in such columns.
     """
     p = params if params is not None else HorizonParams()
-    mask = np.asarray(floor_mask, dtype=bool)
+    mask = _checked_mask(floor_mask, image_bgr, horizon_row)
     height, width = mask.shape
-    if image_bgr.shape[:2] != mask.shape or horizon_row.shape != (width,):
-        raise ValueError(
-            f"image {image_bgr.shape[:2]}, mask {mask.shape} and horizon {horizon_row.shape} "
-            "must agree"
-        )
     walls = np.zeros_like(mask)
     s = max(1, round(height / p.search_rows))
     small_mask = mask[::s, ::s]
@@ -318,10 +327,7 @@ def walls_across_horizon(
     cols = np.flatnonzero(candidate)
     if cols.size == 0:
         return walls
-    lab = cv2.cvtColor(
-        cv2.resize(image_bgr, (small_w, small_h), interpolation=cv2.INTER_AREA), cv2.COLOR_BGR2LAB
-    ).astype(np.float32)
-    lab[..., 0] *= 100.0 / 255.0  # OpenCV's 8-bit L back to CIELAB's 0..100
+    lab = _small_lab(image_bgr, (small_w, small_h))
     # The profile tested: from just above the horizon (by the leak margin) down to the
     # foot, less the rows just above it: shrunk, the foot's own row mixes the surface
     # with the floor, and a segmenter's floor ends a few pixels off the true junction.
