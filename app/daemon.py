@@ -8,6 +8,7 @@ import ctypes
 import ctypes.util
 import gc
 import logging
+from collections.abc import Callable
 from pathlib import Path
 from typing import Any
 
@@ -67,10 +68,12 @@ async def _serve(
     if recorder is not None:
         services.append(RecordingService(runtime, recorder))
     freezer = asyncio.create_task(_freeze_startup_objects(runtime))
+    trimmer = asyncio.create_task(release_freed_memory_every(HEAP_TRIM_PERIOD_S))
     try:
         await runtime.run(duration_s=duration_s, services=services)
     finally:
         freezer.cancel()
+        trimmer.cancel()
 
 
 async def _freeze_startup_objects(runtime: Runtime) -> None:
@@ -155,6 +158,25 @@ def release_freed_memory() -> bool:
     except (OSError, AttributeError):
         return False
     return True
+
+
+HEAP_TRIM_PERIOD_S = 30.0
+"""How often the running daemon gives freed heap pages back (`release_freed_memory`)."""
+
+
+async def release_freed_memory_every(
+    period_s: float, release: Callable[[], bool] = release_freed_memory
+) -> None:
+    """Trim the heap every ``period_s`` while the daemon runs, in a worker thread (the
+    trim takes about a millisecond and ctypes lets go of the GIL). glibc keeps what the
+    stages' per-frame arrays freed: trimmed every 30 s, a simulator run sat at 346-357 MB
+    after its first minute against 374 MB untrimmed. (A fixed mmap threshold, which
+    returns big arrays at once, got 330-343 MB but doubled perception's time in page
+    faults.)"""
+    while True:
+        await asyncio.sleep(period_s)
+        if not await asyncio.to_thread(release):
+            return  # no glibc: nothing to trim
 
 
 def run_daemon(

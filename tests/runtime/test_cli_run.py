@@ -172,6 +172,42 @@ async def test_startup_objects_are_frozen_once_the_first_map_exists() -> None:
     assert gc.get_freeze_count() >= before + len(made_since)
 
 
+async def test_the_running_daemon_trims_its_heap_periodically_off_the_event_loop() -> None:
+    import asyncio
+    import threading
+
+    from app.daemon import release_freed_memory_every
+
+    loop_thread = threading.get_ident()
+    trims: list[int] = []
+
+    def release() -> bool:
+        trims.append(threading.get_ident())
+        return True
+
+    task = asyncio.create_task(release_freed_memory_every(0.02, release))
+    await asyncio.sleep(0.2)
+    assert not task.done()
+    task.cancel()
+    assert len(trims) >= 3
+    assert loop_thread not in trims  # a trim holds malloc's locks: never on the loop
+
+
+async def test_without_glibc_the_periodic_trim_ends_quietly() -> None:
+    import asyncio
+
+    from app.daemon import release_freed_memory_every
+
+    calls: list[float] = []
+
+    def unavailable() -> bool:
+        calls.append(0.0)
+        return False
+
+    await asyncio.wait_for(release_freed_memory_every(0.01, unavailable), 2.0)
+    assert len(calls) == 1
+
+
 RELEASE_CHILD = """
 import sys
 from app.daemon import release_freed_memory
