@@ -170,7 +170,7 @@ async def release_freed_memory_every(
     """Trim the heap every ``period_s`` while the daemon runs, in a worker thread (the
     trim takes about a millisecond and ctypes lets go of the GIL). glibc keeps what the
     stages' per-frame arrays freed: trimmed every 30 s, simulator runs sat at 354-357 MB
-    after its first minute against 374 MB untrimmed. (A fixed mmap threshold, which
+    after their first minute against 374 MB untrimmed. (A fixed mmap threshold, which
     returns big arrays at once, got 330-343 MB but doubled perception's time in page
     faults.)"""
     while True:
