@@ -45,6 +45,7 @@ from app.perception.planar import (
     view_homography,
 )
 from app.perception.standing import horizon_rows, standing_across_horizon, walls_across_horizon
+from app.perception.upright import UprightView, upright_standing_feet, upright_view
 
 _NO_SECOND_MAP = np.empty((0, 0), dtype=np.uint16)
 """cv2.remap's second map, unused with the fixed-point `BirdseyeMap.nearest_map`."""
@@ -248,6 +249,7 @@ class GroundMapper:
         self._parallax_due_s = -math.inf
         self._walls_due_s = -math.inf
         self._row_distance: tuple[tuple[int, ...], NDArray[np.float64]] | None = None
+        self._upright: tuple[tuple[int, ...], UprightView | None] | None = None
         self._confirmed: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
         self._cut: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
         """The colour floor the last parallax test found behind something standing (image
@@ -353,9 +355,7 @@ class GroundMapper:
             # Only its foot stands where the homography puts it: the rest of a standing
             # thing lands in a ray behind it, floor that must stay known and keep its
             # edges open to probes (`standing_feet`).
-            feet_image = standing_feet(
-                standing_image, ground_floor, self._row_distance_m(standing_image.shape)
-            )
+            feet_image = self._standing_feet(standing_image, ground_floor)
             feet = birdseye_floor_patch(feet_image, self.birdseye) == FLOOR
             standing_bgr = (
                 image[standing_image][::STANDING_COLOUR_STRIDE]
@@ -380,6 +380,30 @@ class GroundMapper:
             rows_m = row_ground_distance_m(self.calibration.H_ground_from_image, shape[1], shape[0])
             self._row_distance = (shape[:2], rows_m)
         return self._row_distance[1]
+
+    def _standing_feet(
+        self, standing: NDArray[np.bool_], floor: NDArray[np.bool_]
+    ) -> NDArray[np.bool_]:
+        """Where what stands meets the floor (`standing_feet`), walked along the world's
+        verticals (`upright_standing_feet`) when the camera is pitched or rolled: a
+        leaning edge's columns otherwise each make a foot that lies far behind it."""
+        shape = standing.shape[:2]
+        if self._upright is None or self._upright[0] != shape:
+            height, width = shape
+            intrinsics = self.calibration.intrinsics
+            K = (
+                intrinsics.camera_matrix
+                if intrinsics is not None and intrinsics.image_size == (width, height)
+                else None
+            )
+            self._upright = (
+                shape,
+                upright_view(self.calibration.H_ground_from_image, (width, height), K),
+            )
+        view = self._upright[1]
+        if view is None:
+            return standing_feet(standing, floor, self._row_distance_m(shape))
+        return upright_standing_feet(standing, floor, view)
 
     def _localize(
         self,
