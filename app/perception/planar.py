@@ -395,12 +395,16 @@ def _parallax_search(
 
 
 def row_ground_distance_m(
-    H_ground_from_image: NDArray[np.float64], width_px: int, height_px: int
+    H_ground_from_image: NDArray[np.float64],
+    width_px: int,
+    height_px: int,
+    column_px: float | None = None,
 ) -> NDArray[np.float64]:
-    """(height_px,) forward ground distance of each row at the centre column; NaN at and
-    above the horizon."""
+    """(height_px,) forward ground distance of each row at ``column_px`` (default: the
+    centre column); NaN at and above the horizon."""
+    column = (width_px - 1) / 2.0 if column_px is None else column_px
     v = np.arange(height_px, dtype=np.float64)
-    pts = np.stack([np.full_like(v, (width_px - 1) / 2.0), v, np.ones_like(v)])
+    pts = np.stack([np.full_like(v, column), v, np.ones_like(v)])
     g = np.asarray(H_ground_from_image, dtype=np.float64) @ pts
     with np.errstate(invalid="ignore", divide="ignore"):
         x = g[0] / g[2]

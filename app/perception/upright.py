@@ -30,7 +30,7 @@ import cv2
 import numpy as np
 from numpy.typing import NDArray
 
-from app.perception.planar import FOOT_DEPTH_M, standing_feet
+from app.perception.planar import FOOT_DEPTH_M, row_ground_distance_m, standing_feet
 
 MAX_UPRIGHT_SCALE = 2.5
 """The upright view is at most this many times the image's width and height (a camera
@@ -161,13 +161,10 @@ def upright_view(
     H_upright_from_image = shift @ H_rotate
     # Forward distance per upright row, on the column the image's centre goes to.
     centre = H_upright_from_image @ np.array([(width - 1) / 2.0, (height - 1) / 2.0, 1.0])
-    v = np.arange(out_h, dtype=np.float64)
-    pts = np.stack([np.full_like(v, centre[0] / centre[2]), v, np.ones_like(v)])
-    ground = H @ np.linalg.inv(H_upright_from_image) @ pts
-    with np.errstate(invalid="ignore", divide="ignore"):
-        x = ground[0] / ground[2]
-    x[(ground[2] <= 0) | ~np.isfinite(x) | (x <= 0)] = np.nan
-    return UprightView(H_upright_from_image, (out_w, out_h), x, tilt)
+    rows_m = row_ground_distance_m(
+        H @ np.linalg.inv(H_upright_from_image), out_w, out_h, column_px=centre[0] / centre[2]
+    )
+    return UprightView(H_upright_from_image, (out_w, out_h), rows_m, tilt)
 
 
 def to_upright(mask: NDArray[np.bool_], view: UprightView) -> NDArray[np.bool_]:
