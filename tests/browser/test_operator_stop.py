@@ -804,7 +804,11 @@ def test_stop_reason_calibration_failed(page: Page, rig: LiveServer, screenshots
     open_dashboard(page, rig)
     run_async(rig, rig.runtime.start)
     wait_for(lambda: rig.status()["autonomous"], 5.0, "autonomy on")
+    # The page re-renders for the new state: a click while its layout shifts can land
+    # beside the button (it once left the dialog shut for 30 s in CI).
+    expect(page.locator("#state")).to_have_text("running")
     page.locator("#calib-open").click()
+    expect(page.locator("#calib-dialog")).to_be_visible()
     page.locator("#calib-accept").click()  # no chessboard in the simulated room
     expect(page.locator("#calib-error")).to_be_visible(timeout=30_000)
     page.locator("#calib-cancel").click()
