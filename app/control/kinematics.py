@@ -92,6 +92,11 @@ def _ramp(current: float, target: float, max_step: float) -> float:
     return current + step
 
 
+MAX_EXTRAPOLATION_S = 0.1
+"""`WheelOdometry.pose_at` carries the last motion on at most this far past the last
+sample: two telemetry periods (a longer gap is a stall, and the robot may have stopped)."""
+
+
 @dataclass(frozen=True)
 class OdometrySample:
     time_s: float
@@ -162,15 +167,21 @@ class WheelOdometry:
         return self.pose
 
     def pose_at(self, time_s: float) -> Pose2D:
-        """The pose at ``time_s``, interpolated between samples (the nearest end
-        outside the history)."""
+        """The pose at ``time_s``, interpolated between samples; before the history its
+        first pose; after it, the last interval's motion carried on for at most
+        `MAX_EXTRAPOLATION_S` (a frame is usually newer than the last telemetry: held
+        at that sample, a robot turning at 1.5 rad/s would be placed up to 4 degrees
+        behind where the frame was taken)."""
         if not self._history:
             return self.pose
         i = bisect.bisect_left(self._times, time_s)
         if i <= 0:
             return self._history[0].pose
         if i >= len(self._history):
-            return self._history[-1].pose
+            if len(self._history) < 2:
+                return self._history[-1].pose
+            time_s = min(time_s, self._history[-1].time_s + MAX_EXTRAPOLATION_S)
+            i = len(self._history) - 1
         a, b = self._history[i - 1], self._history[i]
         span = b.time_s - a.time_s
         t = 0.0 if span <= 0 else (time_s - a.time_s) / span

@@ -6,6 +6,7 @@ import pytest
 
 from app.config import DriveConfig
 from app.control.kinematics import (
+    MAX_EXTRAPOLATION_S,
     RateLimiter,
     WheelOdometry,
     limit_twist,
@@ -100,7 +101,20 @@ def test_odometry_interpolates_by_time() -> None:
     drive_ticks(odo, 0.2, 0.2, 0.0, 1.0)
     assert odo.pose_at(0.55).x_m == pytest.approx(0.11, abs=0.002)
     assert odo.pose_at(-5.0).x_m == 0.0  # before the history: its first pose
-    assert odo.pose_at(9.0).x_m == pytest.approx(0.2, abs=0.002)
+    # Past the last sample the last interval's motion (0.2 m/s) goes on, for at most
+    # MAX_EXTRAPOLATION_S.
+    assert odo.pose_at(1.05).x_m == pytest.approx(0.21, abs=0.002)
+    assert odo.pose_at(9.0).x_m == pytest.approx(0.2 + 0.2 * MAX_EXTRAPOLATION_S, abs=0.002)
+
+
+def test_odometry_past_its_last_sample_carries_a_turn_on() -> None:
+    odo = WheelOdometry(DRIVE)
+    odo.update(0, 0, 0.0)
+    # A spin turn at 1 rad/s, sampled every 50 ms as the Uno's telemetry comes.
+    arc = 0.5 * DRIVE.wheel_base_m / 2
+    drive_ticks(odo, -arc, arc, 0.0, 0.5)
+    assert odo.pose.theta_rad == pytest.approx(0.5, abs=0.01)
+    assert odo.pose_at(0.53).theta_rad == pytest.approx(0.53, abs=0.01)
 
 
 def test_odometry_survives_counter_wrap_and_rejects_jumps() -> None:
