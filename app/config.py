@@ -202,6 +202,16 @@ class MappingConfig(StrictModel):
     surface standing up (a floor-coloured box or cupboard taller than the camera) and an
     obstacle (`app.perception.standing`; ~4 ms on the frames it fires on, nothing on the
     others). Needs no motion, unlike the parallax test."""
+    floor_odometry: bool = True
+    """Visual odometry on the floor (`GroundMapper`): each time the camera has moved
+    ``floor_odometry_step_m`` or turned ``floor_odometry_step_rad`` since the last key
+    frame, the two views' floors are lined up pixel for pixel
+    (`app.perception.planar.refine_reference_pose`, ~3-5 ms, nogil) and the pose takes
+    the motion the floor shows instead of the wheels' (which slip, most in spin turns).
+    On a floor without texture the wheels carry on alone. Needs frames without lens
+    distortion, like the parallax test."""
+    floor_odometry_step_m: Annotated[float, Field(ge=0.01, le=0.3)] = 0.05
+    floor_odometry_step_rad: Annotated[float, Field(ge=0.01, le=0.5)] = 0.1
     scan_matching: bool = False
     """Localize against the map (`app.mapping.scan_match`): wheel odometry drifts (slip,
     tyre scale), and a map fused at drifting poses smears. Off by default: on the same

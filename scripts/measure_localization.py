@@ -1,13 +1,14 @@
 #!/usr/bin/env python3
-"""Does scan matching keep the pose, and the map, closer to the truth than wheel odometry
-alone? An open-loop A/B on the simulator, free of the daemon's timing and the machine's
-load: the same scripted tour (waypoints in the plan frame, driven by a controller that
-sees the true pose, with spin turns to look around as exploration does) is driven with
-the shipped wheel-slip model; every frame is rendered, segmented by the shipped method
-and fused by the mapper at the odometry pose, corrected by scan matching or not.
+"""Which localization keeps the pose, and the map, closest to the truth: wheel odometry
+alone, scan matching against the map, or odometry on the floor's motion? An open-loop
+A/B on the simulator, free of the daemon's timing and the machine's load: the same
+scripted tour (waypoints in the plan frame, driven by a controller that sees the true
+pose, with spin turns to look around as exploration does) is driven with the shipped
+wheel-slip model; every frame is rendered, segmented by the shipped method and fused by
+the mapper at the odometry pose, corrected by the variant.
 
     .venv/bin/python scripts/measure_localization.py [--world two-rooms] [--seeds 0 1 2]
-        [--slip on off]
+        [--slip on off] [--localization wheels "scan matching" "floor odometry"]
 
 prints one line per run and writes docs/measurements/localization.json and the table
 docs/localization.md.
@@ -64,11 +65,19 @@ def heading_error(pose: Pose2D, target: tuple[float, float]) -> tuple[float, flo
     return math.hypot(dx, dy), math.remainder(math.atan2(dy, dx) - pose.theta_rad, math.tau)
 
 
-def run_tour(world: str, seed: int, scan_matching: bool, *, slip: bool = True) -> dict[str, object]:
+LOCALIZATION = {
+    # variant: the [mapping] switches it sets
+    "wheels": {"scan_matching": False, "floor_odometry": False},
+    "scan matching": {"scan_matching": True, "floor_odometry": False},
+    "floor odometry": {"scan_matching": False, "floor_odometry": True},
+}
+
+
+def run_tour(world: str, seed: int, localization: str, *, slip: bool = True) -> dict[str, object]:
     sim: dict[str, object] = {"world_file": world, "seed": seed}
     if not slip:
         sim.update(slip_sigma_frac=0.0, wheel_scale_sigma_frac=0.0, encoder_tick_noise=0.0)
-    config = load_config(ROOT / "config.toml", sim=sim, mapping={"scan_matching": scan_matching})
+    config = load_config(ROOT / "config.toml", sim=sim, mapping=LOCALIZATION[localization])
     renderer = renderer_from_config(config)
     robot = SimRobot(renderer.world, robot_params(config), seed=seed)
     start = renderer.world.start_pose
@@ -114,9 +123,15 @@ def run_tour(world: str, seed: int, scan_matching: bool, *, slip: bool = True) -
             segmenter.learned_floor = mapper.memory.appearances()
             last_appearances = t
         result = segmenter.segment(frame.image)
-        update = mapper.update(result.floor_mask, odometry.pose, t, frame.image)
+        pose = odometry.pose
+        update = mapper.update(result.floor_mask, pose, t, frame.image)
         if update.correction is not None:
             odometry.correct(update.correction)
+            pose = update.correction.compose(pose)
+        # As the daemon's mapping stage does, once the frame's map is out.
+        step = mapper.follow_floor(frame.image, result.floor_mask, pose, t)
+        if step is not None:
+            odometry.correct(step)
         # The odometry frame starts at the start pose (as the daemon's T_plan_odom).
         estimate = start.compose(odometry.pose)
         true = robot.pose
@@ -128,7 +143,7 @@ def run_tour(world: str, seed: int, scan_matching: bool, *, slip: bool = True) -
     return {
         "world": world,
         "seed": seed,
-        "scan_matching": scan_matching,
+        "localization": localization,
         "slip": slip,
         "tour_s": round(t, 1),
         "finished": not legs,
@@ -145,6 +160,9 @@ def run_tour(world: str, seed: int, scan_matching: bool, *, slip: bool = True) -
         "matches": None
         if localizer is None
         else {"attempts": localizer.attempts, "applied": localizer.applied},
+        "floor_steps": None
+        if not mapper.floor_odometry
+        else {"attempts": mapper.floor_odometry_steps, "applied": mapper.floor_odometry_applied},
         "wall_s": round(time.perf_counter() - started, 1),
     }
 
@@ -160,6 +178,9 @@ def main() -> int:
         default=["on", "off"],
         help="wheel slip; off: ideal wheels (what scan matching adds by itself)",
     )
+    parser.add_argument(
+        "--localization", nargs="+", choices=sorted(LOCALIZATION), default=list(LOCALIZATION)
+    )
     parser.add_argument("--out", type=Path, default=ROOT / "docs/measurements/localization.json")
     parser.add_argument(
         "--doc", type=Path, default=ROOT / "docs/localization.md", help="the table (none: -)"
@@ -170,14 +191,16 @@ def main() -> int:
     rows = []
     for slip in args.slip:
         for seed in args.seeds:
-            for scan_matching in (False, True):
-                row = run_tour(args.world, seed, scan_matching, slip=slip == "on")
+            for localization in args.localization:
+                row = run_tour(args.world, seed, localization, slip=slip == "on")
                 rows.append(row)
                 print(json.dumps(row), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
     command = "scripts/measure_localization.py --world {} --seeds {} --slip {}".format(
         args.world, " ".join(map(str, args.seeds)), " ".join(args.slip)
     )
+    if args.localization != list(LOCALIZATION):
+        command += " --localization " + " ".join(f'"{v}"' for v in args.localization)
     args.out.write_text(json.dumps({"command": command, "runs": rows}, indent=2) + "\n")
     if args.doc is not None:
         args.doc.write_text(table(command, rows))
@@ -191,19 +214,21 @@ def table(command: str, rows: list[dict[str, object]]) -> str:
         "Written by `scripts/measure_localization.py`: the same scripted tour of a",
         "simulated world (waypoints and full spin turns, driven by a controller that sees",
         "the true pose), every frame rendered, segmented by the shipped method and fused",
-        "at the odometry pose, with scan matching (`[mapping] scan_matching`) off and on.",
+        "at the odometry pose, corrected by nothing (wheels), by scan matching against the",
+        "map (`[mapping] scan_matching`) or by the floor's motion between key frames",
+        "(`[mapping] floor_odometry`, shipped on).",
         "Open loop, so both variants see the same frames; the daemon's timing plays no part.",
         "",
         f"Command: `{command}`",
         "",
-        "| world | seed | wheel slip | scan matching | pose error p50 / p95 / final m |"
-        " map IoU | occupied near truth | matches applied / run |",
+        "| world | seed | wheel slip | localization | pose error p50 / p95 / final m |"
+        " map IoU | occupied near truth | corrections applied / tried |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
         pose = r["pose_error_m"]
         assert isinstance(pose, dict)
-        matches = r["matches"]
+        matches = r["matches"] if r["matches"] is not None else r["floor_steps"]
         applied = (
             "-"
             if not isinstance(matches, dict)
@@ -211,7 +236,7 @@ def table(command: str, rows: list[dict[str, object]]) -> str:
         )
         lines.append(
             f"| {r['world']} | {r['seed']} | {'on' if r['slip'] else 'off'} |"
-            f" {'on' if r['scan_matching'] else 'off'} |"
+            f" {r['localization']} |"
             f" {pose['p50']:.3f} / {pose['p95']:.3f} / {pose['final']:.3f} |"
             f" {r['map_iou']:.3f} | {r['occupied_near_truth']:.3f} | {applied} |"
         )

@@ -8,6 +8,7 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass, replace
+from typing import NamedTuple
 
 import cv2
 import numpy as np
@@ -37,9 +38,11 @@ from app.mapping.scan_match import LocalizerParams, MatchParams, ScanLocalizer, 
 from app.perception.planar import (
     ParallaxResult,
     PlanarParams,
+    RefineParams,
     confirm_floor,
     floor_before_standing,
     reference_pose_from_views,
+    refine_reference_pose,
     row_ground_distance_m,
     standing_feet,
     view_homography,
@@ -58,10 +61,31 @@ cost ~8 ms of the mapping stage."""
 PARALLAX_CARRY_S = 0.5
 """...and its confirmed floor (and the floor it cut off behind what stands) is carried to
 the frames between for at most this long."""
+FLOOR_ODOMETRY_REFINE = RefineParams(iterations=8)
+"""Floor odometry's refinement: a key frame's step in a spin turn can leave a degree or
+more to find, where the parallax test's four steps per pass stop short."""
+FLOOR_ODOMETRY_KEY_TRIES = 3
+"""A key frame is tried against frames one, two and three steps on before it is given up."""
 _STORED_VIEWS = 24
 """Earlier frames kept for the parallax test (grey, ~0.3 MB each)..."""
 _VIEW_STEP_M = 0.02
 """...one per this much camera travel."""
+
+
+class _View(NamedTuple):
+    """An earlier frame kept for comparison: grey image, robot pose (x, y, heading) when
+    it was taken, the camera's world position there, and the frame's time."""
+
+    gray: NDArray[np.uint8]
+    pose: tuple[float, float, float]
+    cam: NDArray[np.float64]
+    time_s: float
+
+
+def _gray(image: NDArray[np.uint8]) -> NDArray[np.uint8]:
+    return np.asarray(
+        cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image, np.uint8
+    )
 
 
 def birdseye_grid(mapping: MappingConfig) -> GroundGrid:
@@ -239,9 +263,16 @@ class GroundMapper:
             PlanarParams() if mapping.parallax_floor and calibration.intrinsics is None else None
         )
         # Earlier frames: grey image, robot pose, camera position in the world.
-        self._views: deque[
-            tuple[NDArray[np.uint8], tuple[float, float, float], NDArray[np.float64]]
-        ] = deque(maxlen=_STORED_VIEWS)
+        self._views: deque[_View] = deque(maxlen=_STORED_VIEWS)
+        self.floor_odometry = mapping.floor_odometry and calibration.intrinsics is None
+        """Visual odometry on the floor (`_floor_odometry`); same frames as parallax."""
+        self._keyframe: _View | None = None
+        self._key_misses = 0
+        """Steps since the key frame whose floors did not line up."""
+        self.floor_odometry_steps = 0
+        """Key-frame steps whose floors were compared (for the report)..."""
+        self.floor_odometry_applied = 0
+        """...and of those, the ones that lined up and moved the pose."""
         self.parallax_frames = 0
         """Frames whose floor was tested by parallax (for the report)."""
         self.parallax_unaligned = 0
@@ -285,7 +316,8 @@ class GroundMapper:
         tested: ParallaxResult | None = None
         cut_px: NDArray[np.bool_] | None = None
         if image is not None and self.parallax is not None:
-            floor_mask, tested = self._confirm_by_parallax(floor_mask, image, T_world_robot, now_s)
+            gray = _gray(image)
+            floor_mask, tested = self._confirm_by_parallax(floor_mask, gray, T_world_robot, now_s)
             cut_px = self._cut_behind_standing(floor_mask, tested, T_world_robot, now_s)
             if cut_px is not None:
                 floor_mask = floor_mask & ~cut_px
@@ -405,6 +437,78 @@ class GroundMapper:
             return standing_feet(standing, floor, self._row_distance_m(shape))
         return upright_standing_feet(standing, floor, view)
 
+    def follow_floor(
+        self,
+        image: NDArray[np.uint8],
+        floor_mask: NDArray[np.bool_],
+        T_world_robot: Pose2D,
+        now_s: float,
+    ) -> Pose2D | None:
+        """Floor odometry for a frame `update` has fused at ``T_world_robot``:
+        ``T_corrected_odom`` to left-multiply onto odometry, or None (off, not due, or
+        the floors did not line up; `floor_odometry_steps` counts the frames compared).
+        Called after the frame's map is out, so the step (~5 ms) is not on the way to
+        the motors; the frame itself stays fused at its odometry pose, off by at most
+        one step's slip."""
+        if not self.floor_odometry:
+            return None
+        return self._floor_odometry(_gray(image), floor_mask, T_world_robot, now_s)
+
+    def _floor_odometry(
+        self, gray: NDArray[np.uint8], floor_mask: NDArray[np.bool_], pose: Pose2D, now_s: float
+    ) -> Pose2D | None:
+        """``T_corrected_odom`` from the floor's motion since the key frame, or None.
+
+        Once the camera has moved ``floor_odometry_step_m`` or turned
+        ``floor_odometry_step_rad`` since the key frame, the key frame's pose is refined
+        against this frame's floor (`refine_reference_pose`, with this frame at its
+        odometry pose). The key frame's pose is the one trusted (it was corrected the
+        same way), so the refined relative pose moves this frame instead:
+        ``T_world_key @ inv(T_world_key_refined)``, and this frame becomes the key frame.
+        Where the floors do not line up, the key is tried again a step further on, and
+        after `FLOOR_ODOMETRY_KEY_TRIES` misses odometry bridges the gap.
+        """
+        here = (pose.x_m, pose.y_m, pose.theta_rad)
+        cam = _camera_xy(here, self.camera_xy_robot)
+        key = self._keyframe
+        if key is None or key.gray.shape != gray.shape:
+            self._keyframe, self._key_misses = _View(gray, here, cam, now_s), 0
+            return None
+        travel = float(np.hypot(*(cam - key.cam)))
+        turn = abs(math.remainder(here[2] - key.pose[2], math.tau))
+        steps = 1 + self._key_misses
+        if (
+            travel < steps * self.mapping.floor_odometry_step_m
+            and turn < steps * self.mapping.floor_odometry_step_rad
+        ):
+            return None
+        self.floor_odometry_steps += 1
+        refined = refine_reference_pose(
+            gray,
+            key.gray,
+            floor_mask,
+            self.calibration.H_ground_from_image,
+            key.pose,
+            here,
+            FLOOR_ODOMETRY_REFINE,
+        )
+        if refined is None:
+            # A new key frame would take this frame's pose from odometry, errors of the
+            # moment (slip, the frame's timing) included, so the key is kept for
+            # FLOOR_ODOMETRY_KEY_TRIES steps while the views still overlap.
+            self._key_misses += 1
+            if self._key_misses >= FLOOR_ODOMETRY_KEY_TRIES:
+                self._keyframe, self._key_misses = _View(gray, here, cam, now_s), 0
+            return None
+        self._key_misses = 0
+        self.floor_odometry_applied += 1
+        T_corrected_odom = Pose2D(*key.pose).compose(Pose2D(*refined).inverse())
+        corrected = T_corrected_odom.compose(pose)
+        at = (corrected.x_m, corrected.y_m, corrected.theta_rad)
+        self._move_views(T_corrected_odom, after_s=key.time_s)
+        self._keyframe = _View(gray, at, _camera_xy(at, self.camera_xy_robot), now_s)
+        return T_corrected_odom
+
     def _localize(
         self,
         patch: NDArray[np.uint8],
@@ -435,24 +539,30 @@ class GroundMapper:
             return None, None
         return found.T_corrected_odom, time.perf_counter() - start_s
 
-    def _move_views(self, T_corrected_odom: Pose2D) -> None:
-        """Move the poses of the frames kept for the parallax test with a correction, as
-        odometry's history moves: the relative poses between frames stay odometry's."""
+    def _move_views(self, T_corrected_odom: Pose2D, after_s: float = -math.inf) -> None:
+        """Move the poses of the frames kept for the parallax test, taken after
+        ``after_s``, with a correction, as odometry's history moves: the relative poses
+        between those frames stay odometry's. (Floor odometry moves only the frames
+        since its key frame: the ones before were not part of the slip it found.)"""
 
         def moved(pose: tuple[float, float, float]) -> tuple[float, float, float]:
             p = T_corrected_odom.compose(Pose2D(*pose))
             return (p.x_m, p.y_m, p.theta_rad)
 
         views = [
-            (gray, moved(pose), _camera_xy(moved(pose), self.camera_xy_robot))
-            for gray, pose, _ in self._views
+            view
+            if view.time_s <= after_s
+            else view._replace(
+                pose=moved(view.pose), cam=_camera_xy(moved(view.pose), self.camera_xy_robot)
+            )
+            for view in self._views
         ]
         self._views.clear()
         self._views.extend(views)
-        if self._confirmed is not None:
+        if self._confirmed is not None and self._confirmed[2] > after_s:
             added, then, at_s = self._confirmed
             self._confirmed = (added, moved(then), at_s)
-        if self._cut is not None:
+        if self._cut is not None and self._cut[2] > after_s:
             cut, then, at_s = self._cut
             self._cut = (cut, moved(then), at_s)
 
@@ -477,6 +587,7 @@ class GroundMapper:
         self.grid.restore(snapshot)
         self.memory = memory
         self._views.clear()
+        self._keyframe = None
         self._confirmed = None
         self._cut = None
 
@@ -517,20 +628,17 @@ class GroundMapper:
         return out if out.any() else None
 
     def _confirm_by_parallax(
-        self, floor_mask: NDArray[np.bool_], image: NDArray[np.uint8], pose: Pose2D, now_s: float
+        self, floor_mask: NDArray[np.bool_], gray: NDArray[np.uint8], pose: Pose2D, now_s: float
     ) -> tuple[NDArray[np.bool_], ParallaxResult | None]:
         """The floor mask extended by parallax, and the test's result when one ran on
         this frame (between tests the last confirmed floor is carried over)."""
         assert self.parallax is not None
-        gray = np.asarray(
-            cv2.cvtColor(image, cv2.COLOR_BGR2GRAY) if image.ndim == 3 else image, np.uint8
-        )
         here = (pose.x_m, pose.y_m, pose.theta_rad)
         cam = _camera_xy(here, self.camera_xy_robot)
         target = self.mapping.parallax_baseline_m
         best: tuple[NDArray[np.uint8], tuple[float, float, float]] | None = None
         best_error = math.inf
-        for view_gray, view_pose, view_cam in self._views:
+        for view_gray, view_pose, view_cam, _ in self._views:
             baseline = float(np.hypot(*(cam - view_cam)))
             turn = abs(math.remainder(here[2] - view_pose[2], math.tau))
             error = abs(baseline - target)
@@ -540,8 +648,8 @@ class GroundMapper:
                 and error < best_error
             ):
                 best, best_error = (view_gray, view_pose), error
-        if not self._views or float(np.hypot(*(cam - self._views[-1][2]))) >= _VIEW_STEP_M:
-            self._views.append((gray, here, cam))
+        if not self._views or float(np.hypot(*(cam - self._views[-1].cam))) >= _VIEW_STEP_M:
+            self._views.append(_View(gray, here, cam, now_s))
         if best is not None and gray.shape == best[0].shape and now_s >= self._parallax_due_s:
             self._parallax_due_s = now_s + PARALLAX_PERIOD_S
             # Odometry's relative pose, checked against the floor both views see: wheel

@@ -204,6 +204,9 @@ def report(rt: Runtime) -> dict[str, Any]:
                 counters.learned_floor_passes / max(counters.frames_perceived, 1), 3
             ),
         },
+        "floor_odometry": None
+        if mapper is None or not mapper.floor_odometry
+        else {"steps": mapper.floor_odometry_steps, "applied": mapper.floor_odometry_applied},
         "scan_match": None
         if mapper is None or mapper.localizer is None
         else {"attempts": mapper.localizer.attempts, "applied": mapper.localizer.applied},

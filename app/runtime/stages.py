@@ -20,6 +20,7 @@ from numpy.typing import NDArray
 from app.channels import SlotReader
 from app.config import PerceptionConfig
 from app.control.steering import Steering
+from app.hardware.device_clock import DeviceClock
 from app.mapping.frames import FLOOR, GroundGrid, Pose2D
 from app.mapping.frontiers import FrontierGoal, FrontierSearch, path_to_point
 from app.mapping.ground_map import GroundMapper, MapUpdate
@@ -376,23 +377,37 @@ class MappingStage:
             if mapper is None or shared.calibrating:
                 continue
             start = shared.clock()
+            pose = shared.odometry.pose_at(floor.capture_s)
             msg, update = await self.worker.run(
-                self.step,
-                mapper,
-                floor,
-                shared.odometry.pose_at(floor.capture_s),
-                shared.odometry.pose,
+                self.step, mapper, floor, pose, shared.odometry.pose
             )
             if mapper is not shared.mapper:
                 continue  # recalibrated or replaced meanwhile: this map is gone
             if update.correction is not None:
                 shared.odometry.correct(update.correction)  # here: odometry is the loop's
+                pose = update.correction.compose(pose)
             if update.match_s is not None:
                 shared.stages.add("scan_match", update.match_s)
             shared.stages.add("mapping", shared.clock() - start)
             shared.counters.frames_mapped += 1
             shared.maps.publish(msg)
+            await self._follow_floor(mapper, floor, pose)
             await self._plan(mapper, floor)
+
+    async def _follow_floor(self, mapper: GroundMapper, floor: FloorMsg, pose: Pose2D) -> None:
+        """Floor odometry for the frame just mapped at ``pose`` (off the motors' path: its
+        map is already out), its correction onto odometry."""
+        shared = self.shared
+        if not mapper.floor_odometry:
+            return
+        steps, start = mapper.floor_odometry_steps, shared.clock()
+        correction = await self.worker.run(
+            mapper.follow_floor, floor.image, floor.floor_mask, pose, floor.capture_s
+        )
+        if mapper.floor_odometry_steps > steps:
+            shared.stages.add("floor_odometry", shared.clock() - start)
+        if correction is not None and mapper is shared.mapper:
+            shared.odometry.correct(correction)
 
     async def _plan(self, mapper: GroundMapper, floor: FloorMsg) -> None:
         """The frontier search and the whole-map copy, when due (off the motors' path)."""
@@ -526,13 +541,17 @@ class OdometryStage:
 
     def __init__(self, shared: Shared) -> None:
         self.shared = shared
+        self.device_clock = DeviceClock()
+        """Times each reading by the Uno's own clock, not by when it arrived: a frame's
+        pose (`WheelOdometry.pose_at`) is only as good as the readings' times."""
 
     async def run(self) -> None:
         link = self.shared.link
         assert link is not None
         async for telemetry in link.telemetry_updates():
             data = telemetry.data
-            self.shared.odometry.update(data.encoder_left, data.encoder_right, telemetry.received_s)
+            read_s = self.device_clock.host_time_s(data.uptime_ms, telemetry.received_s)
+            self.shared.odometry.update(data.encoder_left, data.encoder_right, read_s)
             if self.shared.pose_error is not None:
                 # Now, while the truth is of the same instant as the encoder counts.
                 self.shared.pose_error.sample(self.shared.odometry.pose, telemetry.received_s)

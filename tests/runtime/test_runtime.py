@@ -91,6 +91,21 @@ async def test_autonomy_drives_and_shutdown_stops_the_motors() -> None:
     assert sim.robot.collisions == 0
 
 
+async def test_the_running_daemon_follows_the_floors_motion_and_reports_it() -> None:
+    async with running() as (rt, _):
+        await rt.start()
+        # The robot looks around first: a key frame every 0.1 rad of its turn.
+        await wait_for(
+            lambda: rt.mapper is not None and rt.mapper.floor_odometry_applied >= 3,
+            10.0,
+            "three floor-odometry steps",
+        )
+        report = rt.report()
+        steps = report["floor_odometry"]
+        assert steps["applied"] >= 3 and steps["steps"] >= steps["applied"]
+        assert report["stage_ms"]["floor_odometry"]["p50"] > 0
+
+
 async def test_estop_latches_and_refuses_until_reset() -> None:
     async with running() as (rt, _):
         sim = rt.devices.sim
