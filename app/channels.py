@@ -56,6 +56,11 @@ class SlotReader(Generic[T]):
         self.taken = 0
         self.skipped = 0
 
+    @property
+    def pending(self) -> bool:
+        """A value newer than the last one taken is waiting."""
+        return self.slot.version > self.version and self.slot.peek() is not None
+
     async def next(self) -> T:
         version, value = await self.slot.next(self.version)
         self.skipped += version - self.version - 1

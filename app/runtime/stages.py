@@ -232,6 +232,11 @@ PROBE_ARRIVED_M = 0.25
 """An edge probe's goal this close is reached (`MappingStage._track_goal`)."""
 
 
+FOLLOW_FLOOR_MAX_DEFERRED = 3
+"""Floor odometry gives way to a newer frame at most this many frames in a row: longer,
+and the key frame would fall out of reach (`FLOOR_ODOMETRY_KEY_TRIES` steps)."""
+
+
 class MappingStage:
     """``floors`` -> occupancy grid -> ``maps`` (the window steering needs, every frame)
     and ``world_maps`` (the whole map, at most 2 Hz), in its own thread. Runs the
@@ -247,6 +252,8 @@ class MappingStage:
         self._goal_since: tuple[tuple[float, float], float] | None = None
         self._frontier_due_s = 0.0
         self._snapshot_due_s = 0.0
+        self._floor_deferred = 0
+        """Frames in a row whose floor odometry step waited for a newer frame."""
         self.exploration = self._new_exploration()
         self.home_goal: FrontierGoal | None = None
         """While returning: the path home from the newest frontier search."""
@@ -391,15 +398,23 @@ class MappingStage:
             shared.stages.add("mapping", shared.clock() - start)
             shared.counters.frames_mapped += 1
             shared.maps.publish(msg)
-            await self._follow_floor(mapper, floor, pose)
+            await self._follow_floor(mapper, floor, pose, newer_waiting=reader.pending)
             await self._plan(mapper, floor)
 
-    async def _follow_floor(self, mapper: GroundMapper, floor: FloorMsg, pose: Pose2D) -> None:
+    async def _follow_floor(
+        self, mapper: GroundMapper, floor: FloorMsg, pose: Pose2D, *, newer_waiting: bool
+    ) -> None:
         """Floor odometry for the frame just mapped at ``pose`` (off the motors' path: its
-        map is already out), its correction onto odometry."""
+        map is already out), its correction onto odometry. Put off while a newer frame
+        waits to be mapped (the key frame is then compared with a later one), but at
+        most `FOLLOW_FLOOR_MAX_DEFERRED` frames in a row."""
         shared = self.shared
         if not mapper.floor_odometry:
             return
+        if newer_waiting and self._floor_deferred < FOLLOW_FLOOR_MAX_DEFERRED:
+            self._floor_deferred += 1
+            return
+        self._floor_deferred = 0
         steps, start = mapper.floor_odometry_steps, shared.clock()
         correction = await self.worker.run(
             mapper.follow_floor, floor.image, floor.floor_mask, pose, floor.capture_s

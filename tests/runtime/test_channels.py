@@ -22,6 +22,20 @@ async def test_slow_consumer_gets_the_newest_and_counts_skips() -> None:
     assert reader.skipped == 9
 
 
+async def test_a_reader_sees_whether_something_newer_waits() -> None:
+    slot: LatestSlot[int] = LatestSlot("numbers")
+    reader = SlotReader(slot)
+    assert not reader.pending  # nothing published yet
+    slot.publish(1)
+    assert reader.pending
+    assert await reader.next() == 1
+    assert not reader.pending
+    slot.publish(2)
+    slot.publish(3)
+    assert reader.pending
+    assert await reader.next() == 3 and not reader.pending
+
+
 async def test_consumer_waits_for_something_newer() -> None:
     slot: LatestSlot[str] = LatestSlot("s")
     reader = SlotReader(slot)
