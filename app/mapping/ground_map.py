@@ -452,10 +452,10 @@ class GroundMapper:
         one step's slip."""
         if not self.floor_odometry:
             return None
-        return self._floor_odometry(_gray(image), floor_mask, T_world_robot, now_s)
+        return self._floor_odometry(image, floor_mask, T_world_robot, now_s)
 
     def _floor_odometry(
-        self, gray: NDArray[np.uint8], floor_mask: NDArray[np.bool_], pose: Pose2D, now_s: float
+        self, image: NDArray[np.uint8], floor_mask: NDArray[np.bool_], pose: Pose2D, now_s: float
     ) -> Pose2D | None:
         """``T_corrected_odom`` from the floor's motion since the key frame, or None.
 
@@ -471,8 +471,8 @@ class GroundMapper:
         here = (pose.x_m, pose.y_m, pose.theta_rad)
         cam = _camera_xy(here, self.camera_xy_robot)
         key = self._keyframe
-        if key is None or key.gray.shape != gray.shape:
-            self._keyframe, self._key_misses = _View(gray, here, cam, now_s), 0
+        if key is None or key.gray.shape != image.shape[:2]:
+            self._keyframe, self._key_misses = _View(_gray(image), here, cam, now_s), 0
             return None
         travel = float(np.hypot(*(cam - key.cam)))
         turn = abs(math.remainder(here[2] - key.pose[2], math.tau))
@@ -483,6 +483,7 @@ class GroundMapper:
         ):
             return None
         self.floor_odometry_steps += 1
+        gray = _gray(image)  # only on the frames compared: most are not
         refined = refine_reference_pose(
             gray,
             key.gray,
