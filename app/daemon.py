@@ -160,19 +160,61 @@ def release_freed_memory() -> bool:
     return True
 
 
+MADV_PAGEOUT = 21
+"""madvise(2) advice (Linux 5.4+): reclaim these pages now; their content is kept (a
+file's pages are read back from the file when next touched)."""
+
+COMPILER_LIBRARY = "libllvmlite"
+"""The shared library that holds LLVM, numba's compiler."""
+
+
+def release_compiler_code(library: str = COMPILER_LIBRARY) -> int:
+    """Give back the resident pages of the compiler's own code, 68 of the daemon's
+    ~360 MB: once the kernels are compiled or loaded (`compile_kernels`), calling them
+    runs their machine code, not LLVM's. The pages are reclaimed with ``MADV_PAGEOUT``,
+    which keeps their content, so should anything compile later (a live method change
+    loading kernels from the cache) the kernel reads them back from the library file.
+    Returns the bytes advised (0 where there is no such mapping, no /proc or no
+    MADV_PAGEOUT)."""
+    try:
+        libc = ctypes.CDLL(ctypes.util.find_library("c") or "libc.so.6", use_errno=True)
+        madvise = libc.madvise
+        with open("/proc/self/maps") as maps:
+            lines = maps.readlines()
+    except (OSError, AttributeError):
+        return 0
+    madvise.argtypes = [ctypes.c_void_p, ctypes.c_size_t, ctypes.c_int]
+    advised = 0
+    for line in lines:
+        fields = line.split()
+        if len(fields) < 6 or library not in fields[5]:
+            continue
+        start, end = (int(address, 16) for address in fields[0].split("-"))
+        if madvise(start, end - start, MADV_PAGEOUT) == 0:
+            advised += end - start
+    return advised
+
+
+def release_memory() -> bool:
+    """`release_freed_memory` and `release_compiler_code`; False where there is no
+    glibc."""
+    release_compiler_code()
+    return release_freed_memory()
+
+
 HEAP_TRIM_PERIOD_S = 30.0
-"""How often the running daemon gives freed heap pages back (`release_freed_memory`)."""
+"""How often the running daemon gives freed memory back (`release_memory`)."""
 
 
 async def release_freed_memory_every(
-    period_s: float, release: Callable[[], bool] = release_freed_memory
+    period_s: float, release: Callable[[], bool] = release_memory
 ) -> None:
     """Trim the heap every ``period_s`` while the daemon runs, in a worker thread (the
     trim takes about a millisecond and ctypes lets go of the GIL). glibc keeps what the
     stages' per-frame arrays freed: trimmed every 30 s, simulator runs sat at 354-357 MB
     after their first minute against 374 MB untrimmed. (A fixed mmap threshold, which
     returns big arrays at once, got 330-343 MB but doubled perception's time in page
-    faults.)"""
+    faults.) The compiler's code goes too, in case something compiled since."""
     while True:
         await asyncio.sleep(period_s)
         if not await asyncio.to_thread(release):
@@ -205,7 +247,7 @@ def run_daemon(
     # simulator, Uno link and event loop must never wait out.
     log.info("preparing numba kernels", extra={"event": "jit_start"})
     jit = compile_kernels(config)
-    release_freed_memory()
+    release_memory()
     log.info(
         "numba kernels ready: %s",
         jit.summary(),

@@ -38,16 +38,19 @@ def percentiles_ms(values_s: Any) -> dict[str, float | None]:
 
 
 class FloatWindow:
-    """The newest ``maxlen`` samples, in a ring preallocated at the start: an hour of
-    30 fps samples costs no more memory than the first minute (a deque of Python floats
-    grew the daemon by ~20 MB over an hour).
+    """The newest ``maxlen`` samples, in a ring preallocated and written at the start: an
+    hour of 30 fps samples costs no more memory than the first minute (a deque of Python
+    floats grew the daemon by ~20 MB over an hour). Single precision: the samples are
+    durations, and 7 digits are more than a clock's.
 
     Appending is O(1); iteration is oldest first; `tail` reads the newest few as one
     slice (`newest`, the stage medians and the metrics' histograms)."""
 
     def __init__(self, maxlen: int = 100_000) -> None:
         self.maxlen = maxlen
-        self._data = np.zeros(maxlen, dtype=np.float64)
+        # Filled, not np.zeros: zeroed pages stay unmapped until written, and the ring
+        # would then grow the resident memory for as long as it fills (55 min at 30 fps).
+        self._data = np.full(maxlen, 0.0, dtype=np.float32)
         self._appended = 0
 
     def append(self, value: float) -> None:
@@ -57,14 +60,14 @@ class FloatWindow:
     def __len__(self) -> int:
         return min(self._appended, self.maxlen)
 
-    def values(self) -> NDArray[np.float64]:
+    def values(self) -> NDArray[np.float32]:
         """A copy, oldest first."""
         return self.tail(len(self)).copy()
 
     def __iter__(self) -> Iterator[float]:
         return iter(self.values().tolist())
 
-    def tail(self, n: int) -> NDArray[np.float64]:
+    def tail(self, n: int) -> NDArray[np.float32]:
         """The newest ``min(n, len(self))`` samples as an array, oldest first (a view of
         the ring when they do not wrap: copy it to keep it past the next `append`)."""
         count = min(n, len(self))

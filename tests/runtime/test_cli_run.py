@@ -234,3 +234,53 @@ def test_freed_heap_memory_goes_back_to_the_system_after_the_warm_up() -> None:
     assert out.returncode == 0, out.stderr
     before, after = map(float, out.stdout.split())
     assert before - after > 100, (before, after)
+
+
+COMPILER_PAGES_CHILD = """
+import numba
+import numpy as np
+from app.daemon import release_compiler_code
+
+def compiler_private_clean_kb():
+    # Pages that other processes map too (the test runner imported numba as well) are
+    # not this process's to reclaim; its own unmodified pages are.
+    total, in_library = 0, False
+    for line in open("/proc/self/smaps"):
+        fields = line.split()
+        if "-" in fields[0] and len(fields) >= 5:
+            in_library = len(fields) >= 6 and "libllvmlite" in fields[5]
+        elif fields[0] == "Private_Clean:" and in_library:
+            total += int(fields[1])
+    return total
+
+@numba.njit(nogil=True)
+def add(a, b):
+    return a + b
+
+assert add(1, 2) == 3
+before = compiler_private_clean_kb()
+advised = release_compiler_code()
+after = compiler_private_clean_kb()
+# The code still runs, and a new signature still compiles (LLVM's pages come back).
+assert add(1, 2) == 3
+assert add(np.float32(1.5), np.float32(2.0)) == 3.5
+print(advised, before, after)
+"""
+
+
+def test_the_compilers_code_pages_go_back_once_the_kernels_are_ready() -> None:
+    out = subprocess.run(
+        [sys.executable, "-c", COMPILER_PAGES_CHILD], capture_output=True, text=True, timeout=120
+    )
+    assert out.returncode == 0, out.stderr
+    advised, before_kb, after_kb = map(int, out.stdout.split())
+    if advised == 0:
+        pytest.skip("this kernel has no MADV_PAGEOUT (Linux 5.4+)")
+    assert before_kb > 5_000  # LLVM's code was resident after a compile
+    assert after_kb < before_kb / 10
+
+
+def test_releasing_the_compilers_code_without_that_library_does_nothing() -> None:
+    from app.daemon import release_compiler_code
+
+    assert release_compiler_code("no-such-library-in-this-process") == 0

@@ -16,7 +16,7 @@ def test_float_window_keeps_the_newest_in_order_and_never_grows() -> None:
     assert list(window) == [3.0, 4.0, 5.0, 6.0]
     assert newest(window, 2) == [6.0, 5.0]
     assert newest(window, 10) == [6.0, 5.0, 4.0, 3.0]
-    assert window.values().nbytes == 4 * 8
+    assert window.values().nbytes == 4 * 4
 
 
 def test_float_window_tail_is_the_newest_oldest_first_across_the_wrap() -> None:
