@@ -120,12 +120,19 @@ class CameraModel:
         c, s = math.cos(self.pitch_rad), math.sin(self.pitch_rad)
         return np.array([[0.0, -1.0, 0.0], [-s, 0.0, -c], [c, 0.0, -s]])
 
+    def ray_coordinates(self) -> tuple[NDArray[np.float64], NDArray[np.float64]]:
+        """(W,) and (H,): each column's and each row's coordinate on the image plane one
+        unit ahead; the ray of pixel (row, col) is ``u[col] * right + v[row] * down +
+        forward`` (`axes_robot`)."""
+        cx, cy = self.principal_point_px
+        u = (np.arange(self.width_px, dtype=np.float64) - cx) / self.fx_px
+        v = (np.arange(self.height_px, dtype=np.float64) - cy) / self.fy_px
+        return u, v
+
     def rays_robot(self) -> NDArray[np.float64]:
         """(H, W, 3) ray directions in the robot frame, scaled so the camera's forward
         component is 1 (so ``C + t * ray`` for t > 0 is in front of the camera)."""
-        cx, cy = self.principal_point_px
-        u = (np.arange(self.width_px) - cx) / self.fx_px
-        v = (np.arange(self.height_px) - cy) / self.fy_px
+        u, v = self.ray_coordinates()
         uu, vv = np.meshgrid(u, v)
         right, down, forward = self.axes_robot()
         rays: NDArray[np.float64] = (
@@ -187,8 +194,12 @@ class Renderer:
         self._floor_levels = _lit_levels(world, self.texture)
         self._rng = np.random.default_rng(seed)
         h, w = cam.height_px, cam.width_px
+        # The rays (and their lengths and floor points) are worked out again in the
+        # kernels from each column's u and each row's v, to the same bits: as (H, W)
+        # tables they held 15 MB of the daemon's memory for a few multiplications.
         rays = cam.rays_robot()
-        self._rays = np.ascontiguousarray(rays, dtype=np.float64)
+        self._u, self._v = cam.ray_coordinates()
+        self._axes = cam.axes_robot()
         self._eye = np.array([cam.x_m, cam.y_m, cam.height_m])
         light = world.spec.lighting
         self._light_xy = np.array([math.cos(light.azimuth_rad), math.sin(light.azimuth_rad)])
@@ -198,9 +209,7 @@ class Renderer:
         self._t_floor = t_floor
         floor_xy = self._eye[:2] + t_floor[..., None] * rays[..., :2]
         floor_xy[~np.isfinite(t_floor)] = 0.0
-        self._floor_xy = np.ascontiguousarray(floor_xy)
         ray_len = np.linalg.norm(rays, axis=2)
-        self._ray_len = ray_len
         floor_light = light.ambient + light.diffuse * math.sin(light.elevation_rad)
         dist = np.where(np.isfinite(t_floor), t_floor * ray_len, 0.0)
         self._floor_shade = (floor_light * _attenuation(dist, light.attenuation_distance_m)).astype(
@@ -336,7 +345,10 @@ class Renderer:
         T_plan_robot = pose
         cos_t, sin_t = math.cos(pose.theta_rad), math.sin(pose.theta_rad)
         _floor_maps(
-            self._floor_xy,
+            self._u,
+            self._v,
+            self._axes,
+            self._eye,
             self._t_floor,
             cos_t,
             sin_t,
@@ -379,11 +391,11 @@ class Renderer:
         gg = self._gloss_grid
         # All floats, whatever the pose was built from: one kernel signature.
         frame = (gg.x_max_m, gg.y_max_m, gg.cell_m, cos_t, sin_t, float(pose.x_m), float(pose.y_m))
-        axes = self.camera.axes_robot()
+        axes = self._axes
         cx, cy = cam.principal_point_px
         _render_faces(
-            self._rays,
-            self._ray_len,
+            self._u,
+            self._v,
             self._eye,
             axes,
             cam.fx_px,
@@ -415,8 +427,8 @@ class Renderer:
         )
         m = self._mirror
         reflect = _render_mirror(
-            m.rays,
-            m.ray_len,
+            m.u,
+            m.v,
             self._eye,
             axes,
             m.fx_px,
@@ -501,8 +513,10 @@ class _MirrorView:
     ``step`` x ``step`` pixels (through its centre), the intrinsics that project onto
     the blocks, each ray's floor hit and Fresnel term, and the pass's work buffers."""
 
-    rays: NDArray[np.float64]
-    ray_len: NDArray[np.float64]
+    u: NDArray[np.float64]
+    """Each column's ray coordinate (`CameraModel.ray_coordinates`)..."""
+    v: NDArray[np.float64]
+    """...and each row's."""
     t_floor: NDArray[np.float64]
     fresnel: NDArray[np.float32]
     """Schlick's term of the ray's angle to the floor's normal; 0 for rays that miss it."""
@@ -532,8 +546,8 @@ class _MirrorView:
         cos_view = np.clip(np.where(hits, down / ray_len, 1.0), 0.0, 1.0)
         fresnel = _FRESNEL_F0 + (1.0 - _FRESNEL_F0) * (1.0 - cos_view) ** 5
         return cls(
-            rays=np.ascontiguousarray(rays, np.float64),
-            ray_len=np.ascontiguousarray(ray_len, np.float64),
+            u=np.ascontiguousarray(u, np.float64),
+            v=np.ascontiguousarray(v, np.float64),
             t_floor=np.ascontiguousarray(t_floor, np.float64),
             fresnel=np.where(hits, fresnel, 0.0).astype(np.float32),
             fx_px=cam.fx_px / step,
@@ -572,9 +586,63 @@ def _attenuation(distance_m: NDArray[np.float64], scale_m: float) -> NDArray[np.
 # -- kernels ---------------------------------------------------------------------------
 
 
+_Axes = tuple[float, float, float, float, float, float, float, float, float]
+"""`CameraModel.axes_robot` row by row, as scalars (`_axes`)."""
+
+
+@numba.njit(cache=True, nogil=True)
+def _axes(axes: NDArray[np.float64]) -> _Axes:
+    """The (3, 3) axes as nine scalars: the kernels' inner loops then keep them in
+    registers (from an array they are loaded again for every pixel, since the loops also
+    write arrays)."""
+    return (
+        axes[0, 0],
+        axes[0, 1],
+        axes[0, 2],
+        axes[1, 0],
+        axes[1, 1],
+        axes[1, 2],
+        axes[2, 0],
+        axes[2, 1],
+        axes[2, 2],
+    )
+
+
+_Row = tuple[float, float, float]
+"""A row's share of its rays (`_row`)."""
+
+
+@numba.njit(cache=True, nogil=True)
+def _row(vr: float, a: _Axes) -> _Row:
+    """Row coordinate ``vr`` times the down axis: the part of `_ray` common to a row,
+    worked out once per row."""
+    return (vr * a[3], vr * a[4], vr * a[5])
+
+
+@numba.njit(cache=True, nogil=True)
+def _ray(uc: float, row: _Row, a: _Axes) -> tuple[float, float, float]:
+    """The ray through a pixel at column coordinate ``uc`` (`CameraModel.ray_coordinates`)
+    in a row (`_row`), as `CameraModel.rays_robot` has it: the same operations in the
+    same order, so the same bits."""
+    return (
+        uc * a[0] + row[0] + a[6],
+        uc * a[1] + row[1] + a[7],
+        uc * a[2] + row[2] + a[8],
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _ray_length(dx: float, dy: float, dz: float) -> float:
+    """``np.linalg.norm`` of a ray, summed in its order."""
+    return math.sqrt(dx * dx + dy * dy + dz * dz)
+
+
 @numba.njit(cache=True, nogil=True)
 def _floor_maps(
-    floor_xy: NDArray[np.float64],
+    u: NDArray[np.float64],
+    v: NDArray[np.float64],
+    axes: NDArray[np.float64],
+    eye: NDArray[np.float64],
     t_floor: NDArray[np.float64],
     cos_t: float,
     sin_t: float,
@@ -589,14 +657,19 @@ def _floor_maps(
     """Texture coordinates (level 0: column, row) of every pixel's floor point."""
     h, w = t_floor.shape
     inv = 1.0 / texel
+    ex, ey = eye[0], eye[1]
+    cam_axes = _axes(axes)
     for r in range(h):
+        row = _row(v[r], cam_axes)
         for c in range(w):
-            if not np.isfinite(t_floor[r, c]):
+            t = t_floor[r, c]
+            if not np.isfinite(t):
                 map_x[r, c] = -1e6
                 map_y[r, c] = -1e6
                 continue
-            fx = floor_xy[r, c, 0]
-            fy = floor_xy[r, c, 1]
+            dx, dy, _ = _ray(u[c], row, cam_axes)
+            fx = ex + t * dx
+            fy = ey + t * dy
             px = x0 + cos_t * fx - sin_t * fy
             py = y0 + sin_t * fx + cos_t * fy
             map_x[r, c] = (y_max - py) * inv - 0.5
@@ -667,8 +740,8 @@ def _plan_point(frame: _PlanFrame, rx: float, ry: float) -> tuple[float, float]:
 
 @numba.njit(cache=True, nogil=True)
 def _render_faces(
-    rays: NDArray[np.float64],
-    ray_len: NDArray[np.float64],
+    u: NDArray[np.float64],
+    v: NDArray[np.float64],
     eye: NDArray[np.float64],
     axes: NDArray[np.float64],
     fx: float,
@@ -704,6 +777,7 @@ def _render_faces(
     when ``has_light`` (applied once per pixel, after the nearest face is known)."""
     h, w = t_floor.shape
     ex, ey, ez = eye[0], eye[1], eye[2]
+    cam_axes = _axes(axes)
     tex_h, tex_w = texture.shape[0], texture.shape[1]
     for r in range(h):
         for c in range(w):
@@ -726,8 +800,9 @@ def _render_faces(
         left = edx * (ey - ay) - edy * (ex - ax) > 0.0
         shade = lit[f, 0] if left else lit[f, 1]
         for r in range(r0, r1):
+            row = _row(v[r], cam_axes)
             for c in range(c0, c1):
-                dx, dy, dz = rays[r, c, 0], rays[r, c, 1], rays[r, c, 2]
+                dx, dy, dz = _ray(u[c], row, cam_axes)
                 denom = dx * edy - dy * edx
                 if abs(denom) < 1e-12:
                     continue
@@ -742,7 +817,7 @@ def _render_faces(
                     continue
                 zbuf[r, c] = t
                 hit[r, c] = 1
-                d = t * ray_len[r, c]
+                d = t * _ray_length(dx, dy, dz)
                 gain = shade / (1.0 + (d / att_m) ** 2)
                 if floor_like[f]:
                     along = s * length_m[f]
@@ -771,20 +846,21 @@ def _render_faces(
         if c0 >= c1:
             continue
         for r in range(r0, r1):
+            row = _row(v[r], cam_axes)
             for c in range(c0, c1):
-                dz = rays[r, c, 2]
+                dx, dy, dz = _ray(u[c], row, cam_axes)
                 if dz >= 0.0:
                     continue
                 t = (top - ez) / dz
                 if t >= zbuf[r, c]:
                     continue
-                px = ex + t * rays[r, c, 0] - bcx
-                py = ey + t * rays[r, c, 1] - bcy
+                px = ex + t * dx - bcx
+                py = ey + t * dy - bcy
                 if abs(cs * px + sn * py) > hx or abs(-sn * px + cs * py) > hy:
                     continue
                 zbuf[r, c] = t
                 hit[r, c] = 1
-                d = t * ray_len[r, c]
+                d = t * _ray_length(dx, dy, dz)
                 gain = 1.0 / (1.0 + (d / att_m) ** 2)
                 for k in range(3):
                     face_rgb[r, c, k] = box_color[b, k] * gain
@@ -793,13 +869,13 @@ def _render_faces(
             for c in range(w):
                 if hit[r, c] < 0:
                     zbuf[r, c] = np.inf
-        _apply_light_areas(rays, eye, zbuf, areas, frame, face_rgb)
+        _apply_light_areas(u, v, axes, eye, zbuf, areas, frame, face_rgb)
 
 
 @numba.njit(cache=True, nogil=True)
 def _render_mirror(
-    rays: NDArray[np.float64],
-    ray_len: NDArray[np.float64],
+    u: NDArray[np.float64],
+    v: NDArray[np.float64],
     eye: NDArray[np.float64],
     axes: NDArray[np.float64],
     fx: float,
@@ -841,15 +917,18 @@ def _render_mirror(
         return False
     h, w = t_floor.shape
     ex, ey, ez = eye[0], eye[1], eye[2]
+    cam_axes = _axes(axes)
     g_rows, g_cols = gloss.shape
     inv_cell = 1.0 / frame[2]
     reflects = False
     for r in range(h):
+        row = _row(v[r], cam_axes)
         for c in range(w):
             weight = 0.0
             if fresnel[r, c] > 0.0:
                 t = t_floor[r, c]
-                px, py = _plan_point(frame, ex + t * rays[r, c, 0], ey + t * rays[r, c, 1])
+                dx, dy, _ = _ray(u[c], row, cam_axes)
+                px, py = _plan_point(frame, ex + t * dx, ey + t * dy)
                 gr = math.floor((frame[0] - px) * inv_cell)
                 gc = math.floor((frame[1] - py) * inv_cell)
                 if 0 <= gr < g_rows and 0 <= gc < g_cols:
@@ -883,10 +962,11 @@ def _render_mirror(
         left = edx * (ey - ay) - edy * (ex - ax) > 0.0
         shade = lit[f, 0] if left else lit[f, 1]
         for r in range(r0, r1):
+            row = _row(v[r], cam_axes)
             for c in range(c0, c1):
                 if rzbuf[r, c] < 0.0:
                     continue
-                dx, dy, dz = rays[r, c, 0], rays[r, c, 1], rays[r, c, 2]
+                dx, dy, dz = _ray(u[c], row, cam_axes)
                 denom = dx * edy - dy * edx
                 if abs(denom) < 1e-12:
                     continue
@@ -900,7 +980,7 @@ def _render_mirror(
                 if z > 0.0 or z < -top:
                     continue
                 rzbuf[r, c] = t
-                d = t * ray_len[r, c]
+                d = t * _ray_length(dx, dy, dz)
                 gain = shade / (1.0 + (d / att_m) ** 2)
                 if floor_like[f]:
                     along = s * length_m[f]
@@ -912,13 +992,15 @@ def _render_mirror(
                     for k in range(3):
                         refl_rgb[r, c, k] = colors[f, k] * gain
     if has_light:
-        _apply_light_areas(rays, eye, rzbuf, areas, frame, refl_rgb)
+        _apply_light_areas(u, v, axes, eye, rzbuf, areas, frame, refl_rgb)
     return True
 
 
 @numba.njit(cache=True, nogil=True)
 def _apply_light_areas(
-    rays: NDArray[np.float64],
+    u: NDArray[np.float64],
+    v: NDArray[np.float64],
+    axes: NDArray[np.float64],
     eye: NDArray[np.float64],
     depth: NDArray[np.float64],
     areas: NDArray[np.float64],
@@ -930,12 +1012,15 @@ def _apply_light_areas(
     finite. ``areas``: `World.light_area_table` with the softness inverted."""
     h, w = depth.shape
     ex, ey = eye[0], eye[1]
+    cam_axes = _axes(axes)
     for r in range(h):
+        row = _row(v[r], cam_axes)
         for c in range(w):
             t = depth[r, c]
             if not 0.0 < t < np.inf:
                 continue
-            px, py = _plan_point(frame, ex + t * rays[r, c, 0], ey + t * rays[r, c, 1])
+            dx, dy, _ = _ray(u[c], row, cam_axes)
+            px, py = _plan_point(frame, ex + t * dx, ey + t * dy)
             for a in range(areas.shape[0]):
                 inv = areas[a, 4]
                 cx0 = min(1.0, max(0.0, (px - areas[a, 0]) * inv + 0.5))

@@ -141,3 +141,23 @@ def test_render_bench_smoke() -> None:
 
     result = bench_render(1)
     assert result["frames"] == 30 and float(result["median"]) > 0
+
+
+@pytest.mark.parametrize("pitch_rad", [0.0, 0.35])
+def test_the_kernels_rays_are_the_cameras_rays_to_the_bit(pitch_rad: float) -> None:
+    """The renderer keeps no per-pixel ray table: its kernels work each ray out from the
+    column's and row's coordinates, and must get exactly `rays_robot` (and its norm), or
+    the images would change with the memory layout."""
+    from app.sim.render import _axes, _ray, _ray_length, _row
+
+    cam = CameraModel(width_px=160, height_px=120, pitch_rad=pitch_rad, fx_px=151.3)
+    rays = cam.rays_robot()
+    lengths = np.linalg.norm(rays, axis=2)
+    u, v = cam.ray_coordinates()
+    axes = _axes(cam.axes_robot())
+    for r in range(cam.height_px):
+        row = _row(v[r], axes)
+        for c in range(cam.width_px):
+            ray = _ray(u[c], row, axes)
+            assert ray == tuple(rays[r, c]), (r, c)
+            assert _ray_length(*ray) == lengths[r, c], (r, c)
