@@ -21,6 +21,12 @@ rendering is the simulator's cost, not the daemon's. Each frame then goes throug
 ``world_map``
     The whole map classified for the web and other readers, which the daemon copies
     every ``WORLD_MAP_PERIOD_S``.
+``floor_odometry``
+    `GroundMapper.follow_floor`, which the mapping stage calls for every frame once its
+    map is out (off the way to the motors, but in the mapping thread's frame period): a
+    step against the key frame each time the camera has moved
+    ``mapping.floor_odometry_step_m`` or turned ``floor_odometry_step_rad``, nothing
+    otherwise; ``floor_odometry_steps`` counts the timed frames that ran a step.
 
 ``parallax``
     `confirm_floor` (`app.perception.planar`), the motion-parallax floor test the
@@ -79,8 +85,16 @@ PATH_RADIUS_M = 0.6
 the living room, 0.6 m or more from its walls and boxes all the way round."""
 DEFAULT_FRAMES = 60
 WARMUP_FRAMES = 5
-PER_FRAME_STAGES = ("perception", "map_update", "map_window", "steering")
-STAGES = ("perception", "map_update", "frontier", "map_window", "steering", "world_map")
+PER_FRAME_STAGES = ("perception", "map_update", "map_window", "steering", "floor_odometry")
+STAGES = (
+    "perception",
+    "map_update",
+    "frontier",
+    "map_window",
+    "steering",
+    "world_map",
+    "floor_odometry",
+)
 PARALLAX_CALLS = 50
 """The parallax test is timed this many times..."""
 PARALLAX_PAIRS = 25
@@ -201,6 +215,11 @@ class _FramePath:
         )
         self.reasons[decision.reason] = self.reasons.get(decision.reason, 0) + 1
         samples.timed("world_map", mapper.grid.classify)
+        # The bench's poses are exact: a step's correction would be ~0, and it is not
+        # fed back (the daemon puts it onto odometry, outside the mapper).
+        samples.timed(
+            "floor_odometry", lambda: mapper.follow_floor(image, floor.floor_mask, pose, t_s)
+        )
 
 
 def _frames(
@@ -372,6 +391,7 @@ def bench_frame_path(
         },
         "sustainable_fps": round(1e3 / amortized, 1),
         "steering_reasons": measured.reasons,
+        "floor_odometry_steps": measured.mapper.floor_odometry_steps,
         "parallax_ms": parallax,
         "frame": f"{config.camera.width_px}x{config.camera.height_px} simulated",
         "scene": f"world '{world.name}'",

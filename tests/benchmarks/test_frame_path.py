@@ -60,6 +60,7 @@ def test_bench_json_has_the_daemon_frame_path(capsys: pytest.CaptureFixture[str]
     assert path["budget_share"]["wall"] > 0 and path["budget_share"]["cpu"] > 0
     assert path["sustainable_fps"] > 0
     assert sum(path["steering_reasons"].values()) == 3
+    assert path["floor_odometry_steps"] == 0  # 3 frames: 2.3 cm, less than one step
     assert path["path_min_clearance_m"] > 0.3
     parallax = path["parallax_ms"]  # timed whether or not the config turns it on
     assert parallax["calls"] >= 50 and parallax["pairs"] == 25
