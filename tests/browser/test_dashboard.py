@@ -72,9 +72,14 @@ def test_keyboard_teleop_moves_and_stops_on_key_up(page: Page, robot: LiveServer
     page.keyboard.down("ArrowUp")
     try:
         wait_for(lambda: robot.status()["state"] == "teleop", 2.0, "teleop state")
-        page.wait_for_timeout(1000)
-        moved = math.dist(before[:2], robot.sim_pose()[:2])
-        assert moved > 0.03, f"the simulated robot moved only {moved:.3f} m in 1 s of ArrowUp"
+        # Moving is the point, not how fast: with this test's chromium on the robot's two
+        # cores (and CI beside them) the key's commands can come late, and a fixed second
+        # once saw 2 cm.
+        wait_for(
+            lambda: math.dist(before[:2], robot.sim_pose()[:2]) > 0.03,
+            5.0,
+            "the simulated robot 3 cm on while ArrowUp is held",
+        )
     finally:
         page.keyboard.up("ArrowUp")
     released = time.monotonic()
