@@ -10,7 +10,10 @@ rendering is the simulator's cost, not the daemon's. Each frame then goes throug
 ``perception``
     `FloorSegmenter.segment` (the perception stage).
 ``map_update``
-    `GroundMapper.update` of the floor mask at the frame's pose (the mapping stage).
+    `GroundMapper.update` of the floor mask at the frame's pose (the mapping stage),
+    handing its due geometric tests (parallax, walls) out as the daemon does; they then
+    run apart (`run_geometry_job`, the daemon's geometry thread, off the motors' path:
+    timed as ``geometry_thread_ms``) and the next frame adopts the outcome.
 ``frontier``
     `GroundMapper.frontiers`, which the daemon runs every ``steering.frontier_period_s``.
 ``map_window``
@@ -72,7 +75,12 @@ from app.config import FloornavConfig
 from app.control.steering import Steering
 from app.mapping.frames import Pose2D
 from app.mapping.frontiers import FrontierSearch
-from app.mapping.ground_map import PARALLAX_PERIOD_S, GroundMapper
+from app.mapping.ground_map import (
+    PARALLAX_PERIOD_S,
+    GeometryOutcome,
+    GroundMapper,
+    run_geometry_job,
+)
 from app.perception.pipeline import FloorSegmenter
 from app.perception.planar import PlanarParams, confirm_floor
 from app.runtime import clearance_ahead_m, map_window, path_to_xy
@@ -173,13 +181,29 @@ class _FramePath:
         self.frontier: FrontierSearch | None = None
         self.frontier_due_s = 0.0
         self.reasons: dict[str, int] = {}
+        self.geometry_outcome: GeometryOutcome | None = None
+        self.geometry_ms: list[float] = []
+        """Wall ms of each geometry job handed out (the daemon's geometry thread)."""
 
     def step(self, image: NDArray[np.uint8], t_s: float, pose: Pose2D, samples: _Samples) -> None:
         config, mapper = self.config, self.mapper
         floor = samples.timed("perception", lambda: self.segmenter.segment(image))
         update = samples.timed(
-            "map_update", lambda: mapper.update(floor.floor_mask, pose, t_s, image)
+            "map_update",
+            lambda: mapper.update(
+                floor.floor_mask,
+                pose,
+                t_s,
+                image,
+                geometry="defer",
+                geometry_outcome=self.geometry_outcome,
+            ),
         )
+        self.geometry_outcome = None
+        if update.geometry_job is not None:
+            start = time.perf_counter()
+            self.geometry_outcome = run_geometry_job(update.geometry_job)
+            self.geometry_ms.append((time.perf_counter() - start) * 1e3)
         search = samples.timed("frontier", lambda: mapper.frontiers(pose))
         if t_s >= self.frontier_due_s:  # the daemon adopts a search this often
             self.frontier_due_s = t_s + config.steering.frontier_period_s
@@ -393,6 +417,9 @@ def bench_frame_path(
         "steering_reasons": measured.reasons,
         "floor_odometry_steps": measured.mapper.floor_odometry_steps,
         "parallax_ms": parallax,
+        "geometry_thread_ms": {**_summary(measured.geometry_ms), "jobs": len(measured.geometry_ms)}
+        if measured.geometry_ms
+        else None,
         "frame": f"{config.camera.width_px}x{config.camera.height_px} simulated",
         "scene": f"world '{world.name}'",
         "path": (
@@ -438,6 +465,13 @@ def format_frame_path(result: dict[str, Any]) -> str:
             f"   (every {p['period_s']:g} s when mapping.parallax_floor, now"
             f" {'on' if p['configured'] else 'off'}; {p['calls']} calls on {p['pairs']} pairs"
             f" {p['baseline_m']:g} m apart; with what stands up {p['standing_median']:.2f})"
+        )
+    thread = result.get("geometry_thread_ms")
+    if thread:
+        lines.append(
+            f"  {'geometry':<12}{thread['median']:>9.2f}{thread['p95']:>9.2f}"
+            f"{thread['max']:>9.2f}   ({thread['jobs']} jobs (parallax, walls) handed out by"
+            " map_update, run beside the mapping thread)"
         )
     return "\n".join(lines)
 

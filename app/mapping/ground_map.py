@@ -8,7 +8,7 @@ import math
 import time
 from collections import deque
 from dataclasses import dataclass, replace
-from typing import NamedTuple
+from typing import Literal, NamedTuple
 
 import cv2
 import numpy as np
@@ -36,7 +36,6 @@ from app.mapping.occupancy import (
 )
 from app.mapping.scan_match import LocalizerParams, MatchParams, ScanLocalizer, view_bearings
 from app.perception.planar import (
-    ParallaxResult,
     PlanarParams,
     RefineParams,
     confirm_floor,
@@ -70,6 +69,8 @@ _STORED_VIEWS = 24
 """Earlier frames kept for the parallax test (grey, ~0.3 MB each)..."""
 _VIEW_STEP_M = 0.02
 """...one per this much camera travel."""
+_CORRECTIONS_KEPT = 16
+"""Pose corrections remembered for a handed-out parallax test (a few a second come)."""
 
 
 class _View(NamedTuple):
@@ -170,6 +171,183 @@ class MapUpdate:
     fused at ``correction.compose(T_world_robot)``): left-multiply it onto odometry."""
     match_s: float | None = None
     """Seconds the frame's scan match took (None: none ran)."""
+    geometry_job: GeometryJob | None = None
+    """The geometric tests the frame made due (parallax, walls), for the caller to run off
+    the motors' path (`run_geometry_job`) and hand back to a later
+    `GroundMapper.update` (only with ``geometry="defer"``)."""
+
+
+GeometryMode = Literal["inline", "defer", "hold"]
+"""How `GroundMapper.update` runs its due geometric tests (the parallax floor test and
+the walls test, ~5-25 ms a test on every fifth frame): ``inline`` on the frame itself
+(offline callers: the results are in this frame's map); ``defer`` handed out as
+`MapUpdate.geometry_job` for the caller to run in another thread, its outcome adopted
+by a later frame; ``hold`` not now (the caller's previous job still runs: the tests
+stay due)."""
+
+
+@dataclass(frozen=True)
+class _FeetGeometry:
+    """What `standing_feet` needs for one image size: the upright view of a pitched or
+    rolled camera, else the ground distance of each row."""
+
+    upright: UprightView | None
+    row_distance_m: NDArray[np.float64]
+
+    def feet(self, standing: NDArray[np.bool_], floor: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """Where what stands meets the floor (`standing_feet`), walked along the world's
+        verticals (`upright_standing_feet`) when the camera is pitched or rolled: a
+        leaning edge's columns otherwise each make a foot that lies far behind it."""
+        if self.upright is None:
+            return standing_feet(standing, floor, self.row_distance_m)
+        return upright_standing_feet(standing, floor, self.upright)
+
+
+@dataclass(frozen=True)
+class _ParallaxInput:
+    """The parallax test's part of a `GeometryJob`."""
+
+    gray: NDArray[np.uint8]
+    reference_gray: NDArray[np.uint8]
+    reference_pose: tuple[float, float, float]
+    H_ground_from_image: NDArray[np.float64]
+    camera_xy_robot: tuple[float, float]
+    params: PlanarParams
+
+
+@dataclass(frozen=True)
+class GeometryJob:
+    """One frame's due geometric tests with everything they read (`run_geometry_job`);
+    the arrays are the frames' own and nobody writes them."""
+
+    image: NDArray[np.uint8]
+    floor_mask: NDArray[np.bool_]
+    here: tuple[float, float, float]
+    time_s: float
+    parallax: _ParallaxInput | None
+    """The motion-parallax floor test against an earlier view (None: not due)."""
+    horizon_row: NDArray[np.int64] | None
+    """Per column, the first row below the horizon (None: the horizon tests are off)."""
+    walls: bool
+    """Whether the walls test is due (`walls_across_horizon`)."""
+    feet: _FeetGeometry
+    generation: int
+    """The mapper's map generation (`GroundMapper.restore` starts a new one)."""
+    corrections_before: int
+    """How many pose corrections the mapper had made when the job was cut."""
+
+
+@dataclass(frozen=True)
+class GeometryOutcome:
+    """A finished `GeometryJob` (`run_geometry_job`), as image masks of its frame."""
+
+    job: GeometryJob
+    added: NDArray[np.bool_] | None
+    """Floor parallax confirmed that the colour mask lacked (None: no parallax test)."""
+    flat: NDArray[np.bool_] | None
+    """Pixels parallax tested flat (known floor from now on)."""
+    cut: NDArray[np.bool_] | None
+    """Colour floor lying behind something parallax saw standing (not floor seen)."""
+    standing: NDArray[np.bool_] | None
+    """What parallax saw standing and the walls test proved standing (None: nothing)."""
+    feet: NDArray[np.bool_] | None
+    """Where what stands meets the floor."""
+    standing_bgr: NDArray[np.uint8] | None
+    """Every `STANDING_COLOUR_STRIDE`-th colour of the standing pixels (unlearning)."""
+    unaligned: bool
+    """The views' floors could not be aligned; the test ran on odometry's poses."""
+
+
+def run_geometry_job(job: GeometryJob) -> GeometryOutcome:
+    """Run one frame's geometric tests (pure; any thread: the kernels release the GIL):
+    the parallax test first, then the walls test on the floor it leaves."""
+    floor = job.floor_mask
+    added = flat_floor = cut = None
+    standing_parts: list[NDArray[np.bool_]] = []
+    unaligned = False
+    if job.parallax is not None:
+        p = job.parallax
+        # Odometry's relative pose, checked against the floor both views see: wheel
+        # slip alone would make fine floor textures stand up (`reference_pose_from_views`).
+        # Where the floor cannot be aligned (too plain, or a floor-coloured panel fills
+        # the view) the test runs on odometry: what stands must still be seen.
+        ref_pose = reference_pose_from_views(
+            p.gray, p.reference_gray, floor, p.H_ground_from_image, p.reference_pose, job.here
+        )
+        unaligned = ref_pose is None
+        result = confirm_floor(
+            floor,
+            p.gray,
+            p.reference_gray,
+            p.H_ground_from_image,
+            p.reference_pose if ref_pose is None else ref_pose,
+            job.here,
+            p.camera_xy_robot,
+            p.params,
+            return_standing=True,
+        )
+        # Two pixels of the test's own (downscaled) resolution: one is never enough;
+        # inside the floor by more than half its matching window; spread over a 32nd of
+        # the width (2 degrees for a 60-degree camera) each way.
+        flat = result.tested & ~result.standing
+        kept = floor_before_standing(
+            result.floor,
+            result.standing,
+            2 * p.params.downscale,
+            flat=flat,
+            interior_px=(p.params.window_px // 2 + 1) * p.params.downscale,
+            spread_px=result.floor.shape[1] // 32,
+        )
+        all_cut = result.floor & ~kept
+        cut = all_cut if all_cut.any() else None
+        added = result.floor & ~floor
+        flat_floor = result.floor & flat
+        floor = result.floor & ~all_cut
+        if result.standing.any():
+            # Only its foot stands where the homography puts it: the rest of a standing
+            # thing lands in a ray behind it, floor that must stay known and keep its
+            # edges open to probes (`standing_feet`).
+            standing_parts.append(result.standing)
+        floor_for_feet = floor | flat
+    else:
+        floor_for_feet = floor
+    across: NDArray[np.bool_] | None = None
+    if job.horizon_row is not None and job.image.ndim == 3:
+        # What stands across the horizon (the mapper marks it on every frame) joins the
+        # rest for the feet: one column's box and the wall above it have one foot.
+        across = standing_across_horizon(floor, job.image, job.horizon_row)
+        floor = floor & ~across
+        floor_for_feet = floor_for_feet & ~across
+        if job.walls:
+            # Not-floor surfaces from where the floor ends to past the horizon: walls,
+            # proven standing though plain (the parallax test sees nothing on them).
+            walls = walls_across_horizon(floor, job.image, job.horizon_row)
+            if walls.any():
+                standing_parts.append(walls)
+    standing = feet = standing_bgr = None
+    if standing_parts:
+        standing = np.logical_or.reduce(standing_parts)
+        feet = job.feet.feet(standing if across is None else standing | across, floor_for_feet)
+        if job.image.ndim == 3:
+            standing_bgr = job.image[standing][::STANDING_COLOUR_STRIDE]
+    return GeometryOutcome(
+        job=job,
+        added=added,
+        flat=flat_floor,
+        cut=cut,
+        standing=standing,
+        feet=feet,
+        standing_bgr=standing_bgr,
+        unaligned=unaligned,
+    )
+
+
+@dataclass(frozen=True)
+class _Adopted:
+    """An outcome taken into the map, at its frame's pose as corrected since."""
+
+    outcome: GeometryOutcome
+    then: tuple[float, float, float]
 
 
 STANDING_COLOUR_STRIDE = 4
@@ -280,7 +458,15 @@ class GroundMapper:
         self._parallax_due_s = -math.inf
         self._walls_due_s = -math.inf
         self._row_distance: tuple[tuple[int, ...], NDArray[np.float64]] | None = None
-        self._upright: tuple[tuple[int, ...], UprightView | None] | None = None
+        self._upright: tuple[tuple[int, ...], _FeetGeometry] | None = None
+        self._generation = 0
+        """Counts the maps this mapper has held (`restore`): a test cut from one is not
+        adopted into another."""
+        self._corrections: deque[tuple[Pose2D, float]] = deque(maxlen=_CORRECTIONS_KEPT)
+        """The latest pose corrections (`_move_views`: ``T_corrected_odom``, ``after_s``),
+        to move a handed-out test's pose as the views were moved meanwhile..."""
+        self._corrections_made = 0
+        """...and how many there have been."""
         self._confirmed: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
         self._cut: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
         """The colour floor the last parallax test found behind something standing (image
@@ -305,24 +491,37 @@ class GroundMapper:
         image: NDArray[np.uint8] | None = None,
         *,
         unsure_mask: NDArray[np.bool_] | None = None,
+        geometry: GeometryMode = "inline",
+        geometry_outcome: GeometryOutcome | None = None,
     ) -> MapUpdate:
         """Fuse one frame's floor mask seen at ``T_world_robot`` (the travel from the
         previous call's pose fades the older evidence; time alone never does). With the
-        frame's ``image`` (BGR or grey), the floor is first extended where motion parallax
-        against an earlier frame confirms it (`app.perception.planar`); ``now_s`` paces
-        that test and the scan match, which may correct ``T_world_robot`` before the
-        frame is fused (`MapUpdate.correction`). Not-floor pixels of ``unsure_mask``
-        (same size as the mask) give no evidence: they count as unseen."""
-        tested: ParallaxResult | None = None
+        frame's ``image`` (BGR or grey), geometry goes over colour: the floor is extended
+        where motion parallax against an earlier frame confirms it
+        (`app.perception.planar`), and what parallax or the horizon shows standing is not
+        floor (`app.perception.standing`). ``geometry`` says whether the due tests run on
+        this frame or are handed out; ``geometry_outcome`` is a handed-out job's result
+        to adopt. ``now_s`` paces those tests and the scan match, which may correct
+        ``T_world_robot`` before the frame is fused (`MapUpdate.correction`). Not-floor
+        pixels of ``unsure_mask`` (same size as the mask) give no evidence: they count as
+        unseen."""
+        here = (T_world_robot.x_m, T_world_robot.y_m, T_world_robot.theta_rad)
+        adopted: _Adopted | None = None
+        job: GeometryJob | None = None
         cut_px: NDArray[np.bool_] | None = None
+        if image is not None:
+            if geometry_outcome is not None:
+                adopted = self._adopt(geometry_outcome)
+            job = self._geometry_job(floor_mask, image, here, now_s, geometry != "hold")
+            if job is not None and geometry == "inline":
+                adopted = self._adopt(run_geometry_job(job))
+                job = None
         if image is not None and self.parallax is not None:
-            gray = _gray(image)
-            floor_mask, tested = self._confirm_by_parallax(floor_mask, gray, T_world_robot, now_s)
-            cut_px = self._cut_behind_standing(floor_mask, tested, T_world_robot, now_s)
+            floor_mask = self._with_confirmed(floor_mask, here, now_s)
+            cut_px = self._cut_behind_standing(floor_mask, here, now_s)
             if cut_px is not None:
                 floor_mask = floor_mask & ~cut_px
         standing_px: NDArray[np.bool_] | None = None
-        walls_px: NDArray[np.bool_] | None = None
         if image is not None and image.ndim == 3 and self.horizon_row is not None:
             standing_px = standing_across_horizon(floor_mask, image, self.horizon_row)
             if standing_px.any():
@@ -330,13 +529,6 @@ class GroundMapper:
                 floor_mask = floor_mask & ~standing_px
             else:
                 standing_px = None
-            # Not-floor surfaces from where the floor ends to past the horizon: walls,
-            # proven standing though plain (the parallax test sees nothing on them).
-            if now_s >= self._walls_due_s:
-                self._walls_due_s = now_s + WALLS_PERIOD_S
-                walls_px = walls_across_horizon(floor_mask, image, self.horizon_row)
-                if not walls_px.any():
-                    walls_px = None
         patch = birdseye_floor_patch(floor_mask, self.birdseye)
         if unsure_mask is not None:
             unsure = birdseye_floor_patch(unsure_mask, self.birdseye) == FLOOR
@@ -344,13 +536,25 @@ class GroundMapper:
         # The thesis's safe-zone assumption: the strip just ahead of the robot, below the
         # camera's view, is free floor.
         patch[self.blind_zone] = FLOOR
+        # What the adopted test saw standing, as this frame sees its floor plane (exact
+        # at the feet, which is where the homography puts what stands).
+        standing_here: NDArray[np.bool_] | None = None
+        if adopted is not None and adopted.outcome.standing is not None:
+            standing_here = (
+                birdseye_floor_patch(
+                    self._carried(adopted.outcome.standing, adopted.then, here), self.birdseye
+                )
+                == FLOOR
+            )
         correction: Pose2D | None = None
         match_s: float | None = None
         if self.localizer is not None and self.localizer.due(now_s):
-            correction, match_s = self._localize(patch, tested, T_world_robot, now_s)
+            correction, match_s = self._localize(patch, standing_here, T_world_robot, now_s)
             if correction is not None:
                 T_world_robot = correction.compose(T_world_robot)
                 self._move_views(correction)
+                if adopted is not None:
+                    adopted = _Adopted(adopted.outcome, _moved(adopted.then, correction))
         memory = self.memory
         index = patch_world_index(self.birdseye.grid, self.grid.world_grid, T_world_robot)
         if image is not None and image.ndim == 3:
@@ -370,31 +574,28 @@ class GroundMapper:
         # floor, whatever its colour (a floor-coloured box or wall panel); it is no
         # longer known floor (a textureless face can pass parallax as flat) and its
         # colour is unlearned.
-        standing_image = standing_px
-        if walls_px is not None:
-            standing_image = walls_px if standing_image is None else standing_image | walls_px
-        ground_floor = floor_mask
-        if tested is not None:
-            # What parallax found flat is known floor from now on.
-            flat = tested.floor & tested.tested & ~tested.standing
-            memory.confirm_cells(index[birdseye_floor_patch(flat, self.birdseye) == FLOOR])
-            standing_image = (
-                tested.standing if standing_image is None else tested.standing | standing_image
+        if adopted is not None:
+            outcome, then = adopted.outcome, adopted.then
+            index_then = (
+                index
+                if then == here and correction is None
+                else patch_world_index(self.birdseye.grid, self.grid.world_grid, Pose2D(*then))
             )
-            ground_floor = floor_mask | (tested.tested & ~tested.standing)
-        if standing_image is not None:
-            standing = birdseye_floor_patch(standing_image, self.birdseye) == FLOOR
-            # Only its foot stands where the homography puts it: the rest of a standing
-            # thing lands in a ray behind it, floor that must stay known and keep its
-            # edges open to probes (`standing_feet`).
-            feet_image = self._standing_feet(standing_image, ground_floor)
+            if outcome.flat is not None:
+                # What parallax found flat is known floor from now on.
+                flat = birdseye_floor_patch(outcome.flat, self.birdseye) == FLOOR
+                memory.confirm_cells(index_then[flat])
+            if outcome.feet is not None:
+                feet = birdseye_floor_patch(outcome.feet, self.birdseye) == FLOOR
+                memory.mark_standing(index_then[feet], outcome.standing_bgr)
+            if standing_here is not None:
+                patch[standing_here] = NOT_FLOOR
+        if standing_px is not None and image is not None:
+            standing = birdseye_floor_patch(standing_px, self.birdseye) == FLOOR
+            # Only its foot stands where the homography puts it (see `run_geometry_job`).
+            feet_image = self._feet_geometry(standing_px.shape).feet(standing_px, floor_mask)
             feet = birdseye_floor_patch(feet_image, self.birdseye) == FLOOR
-            standing_bgr = (
-                image[standing_image][::STANDING_COLOUR_STRIDE]
-                if image is not None and image.ndim == 3
-                else None
-            )
-            memory.mark_standing(index[feet], standing_bgr)
+            memory.mark_standing(index[feet], image[standing_px][::STANDING_COLOUR_STRIDE])
             patch[standing] = NOT_FLOOR
         memory.drive_over(T_world_robot, self.mapping.robot_radius_m)
         corrected = memory.correct_patch(patch, index)
@@ -403,23 +604,112 @@ class GroundMapper:
             # sight, not floor seen, so the floor along those rays ends at its foot.
             patch[birdseye_floor_patch(cut_px, self.birdseye) == FLOOR] = NOT_FLOOR
         summary = self.grid.update(patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot)
-        return MapUpdate(patch, summary, corrected, correction, match_s)
+        return MapUpdate(patch, summary, corrected, correction, match_s, job)
 
-    def _row_distance_m(self, shape: tuple[int, ...]) -> NDArray[np.float64]:
-        """Forward ground distance of each image row (`row_ground_distance_m`), cached
-        per image size."""
-        if self._row_distance is None or self._row_distance[0] != shape[:2]:
-            rows_m = row_ground_distance_m(self.calibration.H_ground_from_image, shape[1], shape[0])
-            self._row_distance = (shape[:2], rows_m)
-        return self._row_distance[1]
+    def _geometry_job(
+        self,
+        floor_mask: NDArray[np.bool_],
+        image: NDArray[np.uint8],
+        here: tuple[float, float, float],
+        now_s: float,
+        may_start: bool,
+    ) -> GeometryJob | None:
+        """Keep the frame for later parallax tests, and cut this frame's job when a test
+        is due and ``may_start``: parallax when an earlier frame lies at about the
+        baseline, walls on a colour image with the horizon known."""
+        parallax = self._parallax_input(image, here, now_s) if self.parallax is not None else None
+        if not may_start:
+            return None
+        if parallax is not None and now_s < self._parallax_due_s:
+            parallax = None
+        walls = image.ndim == 3 and self.horizon_row is not None and now_s >= self._walls_due_s
+        if parallax is None and not walls:
+            return None
+        if parallax is not None:
+            self._parallax_due_s = now_s + PARALLAX_PERIOD_S
+        if walls:
+            self._walls_due_s = now_s + WALLS_PERIOD_S
+        return GeometryJob(
+            image=image,
+            floor_mask=floor_mask,
+            here=here,
+            time_s=now_s,
+            parallax=parallax,
+            horizon_row=self.horizon_row,
+            walls=walls,
+            feet=self._feet_geometry(floor_mask.shape),
+            generation=self._generation,
+            corrections_before=self._corrections_made,
+        )
 
-    def _standing_feet(
-        self, standing: NDArray[np.bool_], floor: NDArray[np.bool_]
+    def _parallax_input(
+        self, image: NDArray[np.uint8], here: tuple[float, float, float], now_s: float
+    ) -> _ParallaxInput | None:
+        """Keep the frame among the views (one per `_VIEW_STEP_M` of camera travel); the
+        parallax test's input against the view nearest the baseline, or None."""
+        assert self.parallax is not None
+        gray = _gray(image)
+        cam = _camera_xy(here, self.camera_xy_robot)
+        target = self.mapping.parallax_baseline_m
+        best: _View | None = None
+        best_error = math.inf
+        for view in self._views:
+            baseline = float(np.hypot(*(cam - view.cam)))
+            turn = abs(math.remainder(here[2] - view.pose[2], math.tau))
+            error = abs(baseline - target)
+            if (
+                0.5 * target <= baseline <= 1.5 * target
+                and turn <= self.mapping.parallax_max_turn_rad
+                and error < best_error
+            ):
+                best, best_error = view, error
+        if not self._views or float(np.hypot(*(cam - self._views[-1].cam))) >= _VIEW_STEP_M:
+            self._views.append(_View(gray, here, cam, now_s))
+        if best is None or gray.shape != best.gray.shape:
+            return None
+        return _ParallaxInput(
+            gray=gray,
+            reference_gray=best.gray,
+            reference_pose=best.pose,
+            H_ground_from_image=self.calibration.H_ground_from_image,
+            camera_xy_robot=self.camera_xy_robot,
+            params=self.parallax,
+        )
+
+    def _adopt(self, outcome: GeometryOutcome) -> _Adopted | None:
+        """Take a finished job in: the parallax test's confirmed floor and what it cut
+        off are carried to the frames from now on. Its frame's pose is moved by the corrections made
+        since the job was cut; None (dropped) when the map was replaced meanwhile or
+        too many corrections came to replay."""
+        job = outcome.job
+        since = self._corrections_made - job.corrections_before
+        if job.generation != self._generation or since > len(self._corrections):
+            return None
+        then = job.here
+        for T_corrected_odom, after_s in list(self._corrections)[len(self._corrections) - since :]:
+            if job.time_s > after_s:
+                then = _moved(then, T_corrected_odom)
+        if outcome.added is not None:
+            self.parallax_frames += 1
+            self.parallax_unaligned += int(outcome.unaligned)
+            self._confirmed = (outcome.added, then, job.time_s)
+            self._cut = (outcome.cut, then, job.time_s) if outcome.cut is not None else None
+        return _Adopted(outcome, then)
+
+    def _with_confirmed(
+        self, floor_mask: NDArray[np.bool_], here: tuple[float, float, float], now_s: float
     ) -> NDArray[np.bool_]:
-        """Where what stands meets the floor (`standing_feet`), walked along the world's
-        verticals (`upright_standing_feet`) when the camera is pitched or rolled: a
-        leaning edge's columns otherwise each make a foot that lies far behind it."""
-        shape = standing.shape[:2]
+        """The floor mask extended by the last test's confirmed floor, carried here
+        exactly: it lies on the floor plane, which the homography between the two poses
+        maps (for at most `PARALLAX_CARRY_S`)."""
+        if self._confirmed is None or now_s - self._confirmed[2] > PARALLAX_CARRY_S:
+            return floor_mask
+        added, then, _ = self._confirmed
+        return floor_mask | self._carried(added, then, here)
+
+    def _feet_geometry(self, shape: tuple[int, ...]) -> _FeetGeometry:
+        """The `_FeetGeometry` of this image size (cached)."""
+        shape = shape[:2]
         if self._upright is None or self._upright[0] != shape:
             height, width = shape
             intrinsics = self.calibration.intrinsics
@@ -428,14 +718,17 @@ class GroundMapper:
                 if intrinsics is not None and intrinsics.image_size == (width, height)
                 else None
             )
-            self._upright = (
-                shape,
-                upright_view(self.calibration.H_ground_from_image, (width, height), K),
-            )
-        view = self._upright[1]
-        if view is None:
-            return standing_feet(standing, floor, self._row_distance_m(shape))
-        return upright_standing_feet(standing, floor, view)
+            view = upright_view(self.calibration.H_ground_from_image, (width, height), K)
+            self._upright = (shape, _FeetGeometry(view, self._row_distance_m(shape)))
+        return self._upright[1]
+
+    def _row_distance_m(self, shape: tuple[int, ...]) -> NDArray[np.float64]:
+        """Forward ground distance of each image row (`row_ground_distance_m`), cached
+        per image size."""
+        if self._row_distance is None or self._row_distance[0] != shape[:2]:
+            rows_m = row_ground_distance_m(self.calibration.H_ground_from_image, shape[1], shape[0])
+            self._row_distance = (shape[:2], rows_m)
+        return self._row_distance[1]
 
     def follow_floor(
         self,
@@ -513,7 +806,7 @@ class GroundMapper:
     def _localize(
         self,
         patch: NDArray[np.uint8],
-        tested: ParallaxResult | None,
+        standing: NDArray[np.bool_] | None,
         T_world_robot: Pose2D,
         now_s: float,
     ) -> tuple[Pose2D | None, float | None]:
@@ -524,8 +817,8 @@ class GroundMapper:
         assert self.localizer is not None
         start_s = time.perf_counter()
         scan_patch = patch.copy()
-        if tested is not None:
-            scan_patch[birdseye_floor_patch(tested.standing, self.birdseye) == FLOOR] = NOT_FLOOR
+        if standing is not None:
+            scan_patch[standing] = NOT_FLOOR
         index = patch_world_index(self.birdseye.grid, self.grid.world_grid, T_world_robot)
         self.memory.correct_patch(scan_patch, index)
         found = self.localizer.localize(
@@ -545,16 +838,14 @@ class GroundMapper:
         ``after_s``, with a correction, as odometry's history moves: the relative poses
         between those frames stay odometry's. (Floor odometry moves only the frames
         since its key frame: the ones before were not part of the slip it found.)"""
-
-        def moved(pose: tuple[float, float, float]) -> tuple[float, float, float]:
-            p = T_corrected_odom.compose(Pose2D(*pose))
-            return (p.x_m, p.y_m, p.theta_rad)
-
+        self._corrections.append((T_corrected_odom, after_s))
+        self._corrections_made += 1
         views = [
             view
             if view.time_s <= after_s
             else view._replace(
-                pose=moved(view.pose), cam=_camera_xy(moved(view.pose), self.camera_xy_robot)
+                pose=(moved := _moved(view.pose, T_corrected_odom)),
+                cam=_camera_xy(moved, self.camera_xy_robot),
             )
             for view in self._views
         ]
@@ -562,10 +853,10 @@ class GroundMapper:
         self._views.extend(views)
         if self._confirmed is not None and self._confirmed[2] > after_s:
             added, then, at_s = self._confirmed
-            self._confirmed = (added, moved(then), at_s)
+            self._confirmed = (added, _moved(then, T_corrected_odom), at_s)
         if self._cut is not None and self._cut[2] > after_s:
             cut, then, at_s = self._cut
-            self._cut = (cut, moved(then), at_s)
+            self._cut = (cut, _moved(then, T_corrected_odom), at_s)
 
     def snapshot(self) -> SavedMap:
         """A read-only copy of the map for saving (`app.mapping.map_files.save_map`); call
@@ -587,102 +878,24 @@ class GroundMapper:
             memory.restore(snapshot.floor_memory)  # checked before the grid changes
         self.grid.restore(snapshot)
         self.memory = memory
+        self._generation += 1
         self._views.clear()
         self._keyframe = None
         self._confirmed = None
         self._cut = None
 
     def _cut_behind_standing(
-        self,
-        floor_mask: NDArray[np.bool_],
-        tested: ParallaxResult | None,
-        pose: Pose2D,
-        now_s: float,
+        self, floor_mask: NDArray[np.bool_], here: tuple[float, float, float], now_s: float
     ) -> NDArray[np.bool_] | None:
-        """The part of ``floor_mask`` that lies behind something parallax saw standing
-        (`floor_before_standing`), from this frame's test or carried from the last one;
-        None when there is none."""
-        assert self.parallax is not None
-        here = (pose.x_m, pose.y_m, pose.theta_rad)
-        if tested is not None:
-            # Two pixels of the test's own (downscaled) resolution: one is never enough;
-            # inside the floor by more than half its matching window; spread over a 32nd
-            # of the width (2 degrees for a 60-degree camera) each way.
-            p = self.parallax
-            kept = floor_before_standing(
-                floor_mask,
-                tested.standing,
-                2 * p.downscale,
-                flat=tested.tested & ~tested.standing,
-                interior_px=(p.window_px // 2 + 1) * p.downscale,
-                spread_px=floor_mask.shape[1] // 32,
-            )
-            cut = floor_mask & ~kept
-            self._cut = (cut, here, now_s) if cut.any() else None
-            return cut if cut.any() else None
+        """The part of ``floor_mask`` that lies behind something the last test saw
+        standing (`floor_before_standing`), moved with the floor homography: exact at
+        the surface's foot (on the floor) and off by its parallax above it, for a few
+        frames at most. None when there is none."""
         if self._cut is None or now_s - self._cut[2] > PARALLAX_CARRY_S:
             return None
-        # Between tests: moved with the floor homography, exact at the surface's foot (on
-        # the floor) and off by its parallax above it, for a few frames at most.
         cut, then, _ = self._cut
         out = floor_mask & self._carried(cut, then, here)
         return out if out.any() else None
-
-    def _confirm_by_parallax(
-        self, floor_mask: NDArray[np.bool_], gray: NDArray[np.uint8], pose: Pose2D, now_s: float
-    ) -> tuple[NDArray[np.bool_], ParallaxResult | None]:
-        """The floor mask extended by parallax, and the test's result when one ran on
-        this frame (between tests the last confirmed floor is carried over)."""
-        assert self.parallax is not None
-        here = (pose.x_m, pose.y_m, pose.theta_rad)
-        cam = _camera_xy(here, self.camera_xy_robot)
-        target = self.mapping.parallax_baseline_m
-        best: tuple[NDArray[np.uint8], tuple[float, float, float]] | None = None
-        best_error = math.inf
-        for view_gray, view_pose, view_cam, _ in self._views:
-            baseline = float(np.hypot(*(cam - view_cam)))
-            turn = abs(math.remainder(here[2] - view_pose[2], math.tau))
-            error = abs(baseline - target)
-            if (
-                0.5 * target <= baseline <= 1.5 * target
-                and turn <= self.mapping.parallax_max_turn_rad
-                and error < best_error
-            ):
-                best, best_error = (view_gray, view_pose), error
-        if not self._views or float(np.hypot(*(cam - self._views[-1].cam))) >= _VIEW_STEP_M:
-            self._views.append(_View(gray, here, cam, now_s))
-        if best is not None and gray.shape == best[0].shape and now_s >= self._parallax_due_s:
-            self._parallax_due_s = now_s + PARALLAX_PERIOD_S
-            # Odometry's relative pose, checked against the floor both views see: wheel
-            # slip alone would make fine floor textures stand up
-            # (`reference_pose_from_views`).
-            # Where the floor cannot be aligned (too plain, or a floor-coloured panel
-            # fills the view) the test runs on odometry: what stands must still be seen.
-            ref_pose = reference_pose_from_views(
-                gray, best[0], floor_mask, self.calibration.H_ground_from_image, best[1], here
-            )
-            if ref_pose is None:
-                self.parallax_unaligned += 1
-            self.parallax_frames += 1
-            result = confirm_floor(
-                floor_mask,
-                gray,
-                best[0],
-                self.calibration.H_ground_from_image,
-                best[1] if ref_pose is None else ref_pose,
-                here,
-                self.camera_xy_robot,
-                self.parallax,
-                return_standing=True,
-            )
-            self._confirmed = (result.floor & ~floor_mask, here, now_s)
-            return result.floor, result
-        if self._confirmed is not None and now_s - self._confirmed[2] <= PARALLAX_CARRY_S:
-            # Between tests, the last confirmed floor carries over exactly: it lies on the
-            # floor plane, which the homography between the two poses maps.
-            added, then, _ = self._confirmed
-            return floor_mask | self._carried(added, then, here), None
-        return floor_mask, None
 
     def _carried(
         self,
@@ -721,6 +934,14 @@ class GroundMapper:
             self.memory.standing != 0, PROBE_STANDING_REACH_M / self.grid.world_grid.cell_m
         )
         return np.asarray(~(standing | self.given_up.no_probe), dtype=np.bool_)
+
+
+def _moved(
+    pose: tuple[float, float, float], T_corrected_odom: Pose2D
+) -> tuple[float, float, float]:
+    """A pose (x_m, y_m, theta_rad) moved by a correction."""
+    p = T_corrected_odom.compose(Pose2D(*pose))
+    return (p.x_m, p.y_m, p.theta_rad)
 
 
 def _camera_xy(

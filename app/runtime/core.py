@@ -137,7 +137,12 @@ class Runtime:
         self._explored_task: asyncio.Task[None] | None = None
         self.steering_stage = SteeringStage(self.shared, self.steering)
         self.drive = DriveStage(self.shared, RateLimiter(config.drive))
-        self.workers = (self.perception.worker, self.mapping.worker, self.steering_stage.worker)
+        self.workers = (
+            self.perception.worker,
+            self.mapping.worker,
+            self.mapping.geometry_worker,
+            self.steering_stage.worker,
+        )
         self.health = HealthStage(self.shared, self.workers, self._tick)
         self.loop_lag = LoopLagMonitor()
         self.state = State.IDLE

@@ -172,6 +172,8 @@ def report(rt: Runtime) -> dict[str, Any]:
         "bad_frames": counters.bad_frames,
         "latency_ms": percentiles_ms(rt.drive.latencies),
         "frame_age_at_perception_ms": percentiles_ms(rt.perception.frame_ages),
+        "floor_wait_for_mapping_ms": percentiles_ms(rt.mapping.floor_waits),
+        "map_wait_for_steering_ms": percentiles_ms(rt.steering_stage.map_waits),
         "stage_ms": shared.stages.summary_ms(),
         "loop_lag_ms": rt.loop_lag.summary_ms(),
         "collisions": sim.robot.collisions if sim is not None else None,

@@ -23,7 +23,14 @@ from app.control.steering import Steering
 from app.hardware.device_clock import DeviceClock
 from app.mapping.frames import FLOOR, GroundGrid, Pose2D
 from app.mapping.frontiers import FrontierGoal, FrontierSearch, path_to_point
-from app.mapping.ground_map import GroundMapper, MapUpdate
+from app.mapping.ground_map import (
+    GeometryJob,
+    GeometryMode,
+    GeometryOutcome,
+    GroundMapper,
+    MapUpdate,
+    run_geometry_job,
+)
 from app.mapping.occupancy import classify_log_odds
 from app.messages import FloorMsg, FrameMsg, MapMsg, WorldMapMsg
 from app.perception.floor_net import LearnedPassBackoff
@@ -246,6 +253,11 @@ class MappingStage:
     def __init__(self, shared: Shared) -> None:
         self.shared = shared
         self.worker = StageWorker("mapping")
+        self.geometry_worker = StageWorker("geometry")
+        """Runs the geometric tests (parallax, walls) beside the mapping thread, off the
+        motors' path: on the mapping thread they held up every fifth frame's map by
+        10-25 ms."""
+        self._geometry: tuple[GroundMapper, asyncio.Task[GeometryOutcome]] | None = None
         self.frontier: FrontierSearch | None = None
         self.goals_given_up = 0
         """Goals given up this run (each map keeps its own, `GroundMapper.given_up`)."""
@@ -255,6 +267,8 @@ class MappingStage:
         self._floor_deferred = 0
         """Frames in a row whose floor odometry step waited for a newer frame."""
         self.exploration = self._new_exploration()
+        self.floor_waits = FloatWindow()
+        """How long each floor mask waited for the mapping thread (seconds)."""
         self.home_goal: FrontierGoal | None = None
         """While returning: the path home from the newest frontier search."""
         self.on_phase: Callable[[PhaseChange], None] | None = None
@@ -277,14 +291,26 @@ class MappingStage:
         self.exploration = self._new_exploration()
 
     def step(
-        self, mapper: GroundMapper, floor: FloorMsg, pose: Pose2D, now_pose: Pose2D
+        self,
+        mapper: GroundMapper,
+        floor: FloorMsg,
+        pose: Pose2D,
+        now_pose: Pose2D,
+        geometry: GeometryMode = "inline",
+        geometry_outcome: GeometryOutcome | None = None,
     ) -> tuple[MapMsg, MapUpdate]:
         """In the mapping thread, on the way to the motors: fuse the frame and cut the
         window steering reads, with the goal of the latest frontier search (searched
         after the message is out, `plan`: a search is up to 0.5 s old anyway)."""
         config = self.shared.config
         update = mapper.update(
-            floor.floor_mask, pose, floor.capture_s, floor.image, unsure_mask=floor.unsure_mask
+            floor.floor_mask,
+            pose,
+            floor.capture_s,
+            floor.image,
+            unsure_mask=floor.unsure_mask,
+            geometry=geometry,
+            geometry_outcome=geometry_outcome,
         )
         if update.correction is not None:
             # The frame went into the map at the corrected pose; odometry follows in `run`.
@@ -376,6 +402,14 @@ class MappingStage:
         return self.exploration.phase is Phase.RETURNING and self.shared.autonomous
 
     async def run(self) -> None:
+        try:
+            await self._run()
+        finally:
+            if self._geometry is not None:
+                self._geometry[1].cancel()  # its thread finishes the job; nobody waits
+                self._geometry = None
+
+    async def _run(self) -> None:
         shared = self.shared
         reader = SlotReader(shared.floors)
         while True:
@@ -384,9 +418,11 @@ class MappingStage:
             if mapper is None or shared.calibrating:
                 continue
             start = shared.clock()
+            self.floor_waits.append(start - floor.done_s)
             pose = shared.odometry.pose_at(floor.capture_s)
+            mode, outcome = self._geometry_handover(mapper)
             msg, update = await self.worker.run(
-                self.step, mapper, floor, pose, shared.odometry.pose
+                self.step, mapper, floor, pose, shared.odometry.pose, mode, outcome
             )
             if mapper is not shared.mapper:
                 continue  # recalibrated or replaced meanwhile: this map is gone
@@ -398,8 +434,40 @@ class MappingStage:
             shared.stages.add("mapping", shared.clock() - start)
             shared.counters.frames_mapped += 1
             shared.maps.publish(msg)
+            if update.geometry_job is not None:
+                self._start_geometry(mapper, update.geometry_job)
             await self._follow_floor(mapper, floor, pose, newer_waiting=reader.pending)
             await self._plan(mapper, floor)
+
+    def _geometry_handover(
+        self, mapper: GroundMapper
+    ) -> tuple[GeometryMode, GeometryOutcome | None]:
+        """For the next step: whether it may hand out a new job (not while one runs),
+        and the finished job to adopt (dropped when the map was replaced meanwhile)."""
+        if self._geometry is None:
+            return "defer", None
+        tested_mapper, task = self._geometry
+        if not task.done():
+            return "hold", None
+        self._geometry = None
+        if task.cancelled() or tested_mapper is not mapper:
+            return "defer", None
+        error = task.exception()
+        if error is not None:
+            log.error("geometry job failed: %s", error, exc_info=error, extra={"event": "geometry"})
+            return "defer", None
+        return "defer", task.result()
+
+    def _start_geometry(self, mapper: GroundMapper, job: GeometryJob) -> None:
+        shared = self.shared
+
+        async def run_job() -> GeometryOutcome:
+            start = shared.clock()
+            outcome = await self.geometry_worker.run(run_geometry_job, job)
+            shared.stages.add("geometry", shared.clock() - start)
+            return outcome
+
+        self._geometry = (mapper, asyncio.create_task(run_job(), name="geometry-job"))
 
     async def _follow_floor(
         self, mapper: GroundMapper, floor: FloorMsg, pose: Pose2D, *, newer_waiting: bool
@@ -523,6 +591,8 @@ class SteeringStage:
         self.worker = StageWorker("steering")
         self.reasons: dict[str, int] = {}
         """How often each steering decision reason came up."""
+        self.map_waits = FloatWindow()
+        """How long each map message waited for the steering thread (seconds)."""
 
     async def run(self) -> None:
         shared = self.shared
@@ -532,6 +602,7 @@ class SteeringStage:
             if not shared.autonomous or shared.mux.estopped:
                 continue
             start = shared.clock()
+            self.map_waits.append(start - msg.done_s)
             decision = await self.worker.run(
                 functools.partial(
                     self.steering.decide,

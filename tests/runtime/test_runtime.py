@@ -106,6 +106,24 @@ async def test_the_running_daemon_follows_the_floors_motion_and_reports_it() -> 
         assert report["stage_ms"]["floor_odometry"]["p50"] > 0
 
 
+async def test_the_geometric_tests_run_beside_the_mapping_thread_and_their_results_arrive() -> None:
+    """The parallax and walls tests run on the geometry worker, not on the way to the
+    motors; the next frames adopt them (their floor and standing reach the map), and
+    the report says how long a job took and how long floors and maps waited."""
+    async with running() as (rt, _):
+        await rt.start()
+        await wait_for(
+            lambda: rt.mapper is not None and rt.mapper.memory.standing.any(),
+            10.0,
+            "something seen standing (walls or parallax) in the floor memory",
+        )
+        report = rt.report()
+        assert report["stage_ms"]["geometry"]["n"] >= 1
+        assert report["stage_ms"]["geometry"]["p50"] > 0
+        for wait in ("floor_wait_for_mapping_ms", "map_wait_for_steering_ms"):
+            assert report[wait]["n"] >= 1 and report[wait]["p50"] >= 0
+
+
 async def test_estop_latches_and_refuses_until_reset() -> None:
     async with running() as (rt, _):
         sim = rt.devices.sim
