@@ -11,6 +11,7 @@ lets the runtime wait for it with a bound.
 from __future__ import annotations
 
 import asyncio
+import os
 import queue
 import sys
 import threading
@@ -35,10 +36,16 @@ class StageWorker:
     Parameters
     ----------
     name : names the thread (``floornav-<name>``) and the log lines about it.
+    nicer_by : how much nicer than the process the thread runs (Linux: a thread may
+        lower its own priority without privileges), so that work off the motors' path
+        gives way to the stages on it when the cores are busy.
     """
 
-    def __init__(self, name: str) -> None:
+    def __init__(self, name: str, *, nicer_by: int = 0) -> None:
+        if not 0 <= nicer_by <= 19:
+            raise ValueError(f"nicer_by must be in [0, 19], got {nicer_by}")
         self.name = name
+        self.nicer_by = nicer_by
         self._jobs: queue.SimpleQueue[_Job | None] = queue.SimpleQueue()
         self._closed = False
         self._busy_since_s: float | None = None
@@ -102,6 +109,13 @@ class StageWorker:
         return True
 
     def _run(self) -> None:
+        if self.nicer_by and hasattr(os, "setpriority"):
+            thread_id = threading.get_native_id()
+            try:
+                nice = os.getpriority(os.PRIO_PROCESS, thread_id)
+                os.setpriority(os.PRIO_PROCESS, thread_id, min(19, nice + self.nicer_by))
+            except OSError:  # a sandbox without the call: the thread runs at the process's
+                pass
         while True:
             job = self._jobs.get()
             if job is None:

@@ -15,7 +15,8 @@ rendering is the simulator's cost, not the daemon's. Each frame then goes throug
     run apart (`run_geometry_job`, the daemon's geometry thread, off the motors' path:
     timed as ``geometry_thread_ms``) and the next frame adopts the outcome.
 ``frontier``
-    `GroundMapper.frontiers`, which the daemon runs every ``steering.frontier_period_s``.
+    `GroundMapper.frontiers`, which the daemon runs every ``steering.frontier_period_s``
+    (the copy of its inputs on the mapping thread, the search beside it).
 ``map_window``
     `map_window` around the robot, `clearance_ahead_m` of the frame's patch and the
     frontier path as points (the rest of the mapping stage's every-frame work).
@@ -25,11 +26,11 @@ rendering is the simulator's cost, not the daemon's. Each frame then goes throug
     The whole map classified for the web and other readers, which the daemon copies
     every ``WORLD_MAP_PERIOD_S``.
 ``floor_odometry``
-    `GroundMapper.follow_floor`, which the mapping stage calls for every frame once its
-    map is out (off the way to the motors, but in the mapping thread's frame period): a
-    step against the key frame each time the camera has moved
-    ``mapping.floor_odometry_step_m`` or turned ``floor_odometry_step_rad``, nothing
-    otherwise; ``floor_odometry_steps`` counts the timed frames that ran a step.
+    `GroundMapper.follow_floor`: a step against the key frame each time the camera has
+    moved ``mapping.floor_odometry_step_m`` or turned ``floor_odometry_step_rad``,
+    nothing otherwise; ``floor_odometry_steps`` counts the timed frames that ran a step.
+    The daemon runs the step beside the mapping thread (off the way to the motors) and
+    adopts it a frame or more later; here it runs inline, on the frame itself.
 
 ``parallax``
     `confirm_floor` (`app.perception.planar`), the motion-parallax floor test the

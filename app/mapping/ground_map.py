@@ -737,30 +737,28 @@ class GroundMapper:
         T_world_robot: Pose2D,
         now_s: float,
     ) -> Pose2D | None:
-        """Floor odometry for a frame `update` has fused at ``T_world_robot``:
+        """Floor odometry for a frame `update` has fused at ``T_world_robot``, inline:
         ``T_corrected_odom`` to left-multiply onto odometry, or None (off, not due, or
         the floors did not line up; `floor_odometry_steps` counts the frames compared).
-        Called after the frame's map is out, so the step (~5 ms) is not on the way to
-        the motors; the frame itself stays fused at its odometry pose, off by at most
-        one step's slip."""
-        if not self.floor_odometry:
-            return None
-        return self._floor_odometry(image, floor_mask, T_world_robot, now_s)
+        The daemon cuts the step (`floor_odometry_job`), runs it beside the mapping
+        thread (`run_floor_odometry_job`) and adopts it (`adopt_floor_odometry`) after
+        a later frame's map is out; the frame itself stays fused at its odometry pose,
+        off by at most one step's slip."""
+        job = self.floor_odometry_job(image, floor_mask, T_world_robot, now_s)
+        return None if job is None else self.adopt_floor_odometry(run_floor_odometry_job(job))
 
-    def _floor_odometry(
+    def floor_odometry_job(
         self, image: NDArray[np.uint8], floor_mask: NDArray[np.bool_], pose: Pose2D, now_s: float
-    ) -> Pose2D | None:
-        """``T_corrected_odom`` from the floor's motion since the key frame, or None.
+    ) -> FloorOdometryJob | None:
+        """A floor odometry step for this frame, or None (off or not due).
 
         Once the camera has moved ``floor_odometry_step_m`` or turned
         ``floor_odometry_step_rad`` since the key frame, the key frame's pose is refined
         against this frame's floor (`refine_reference_pose`, with this frame at its
-        odometry pose). The key frame's pose is the one trusted (it was corrected the
-        same way), so the refined relative pose moves this frame instead:
-        ``T_world_key @ inv(T_world_key_refined)``, and this frame becomes the key frame.
-        Where the floors do not line up, the key is tried again a step further on, and
-        after `FLOOR_ODOMETRY_KEY_TRIES` misses odometry bridges the gap.
+        odometry pose). The first frame becomes the key frame.
         """
+        if not self.floor_odometry:
+            return None
         here = (pose.x_m, pose.y_m, pose.theta_rad)
         cam = _camera_xy(here, self.camera_xy_robot)
         key = self._keyframe
@@ -776,29 +774,48 @@ class GroundMapper:
         ):
             return None
         self.floor_odometry_steps += 1
-        gray = _gray(image)  # only on the frames compared: most are not
-        refined = refine_reference_pose(
-            gray,
-            key.gray,
-            floor_mask,
-            self.calibration.H_ground_from_image,
-            key.pose,
-            here,
-            FLOOR_ODOMETRY_REFINE,
+        return FloorOdometryJob(
+            image=image,
+            floor_mask=floor_mask,
+            here=here,
+            time_s=now_s,
+            key=key,
+            H_ground_from_image=self.calibration.H_ground_from_image,
+            generation=self._generation,
+            corrections_before=self._corrections_made,
         )
-        if refined is None:
+
+    def adopt_floor_odometry(self, outcome: FloorOdometryOutcome) -> Pose2D | None:
+        """A finished step's ``T_corrected_odom``, or None.
+
+        The key frame's pose is the one trusted (it was corrected the same way), so the
+        refined relative pose moves the step's frame instead:
+        ``T_world_key @ inv(T_world_key_refined)``, and that frame becomes the key
+        frame. Where the floors did not line up, the key is tried again a step further
+        on, and after `FLOOR_ODOMETRY_KEY_TRIES` misses odometry bridges the gap. A
+        step whose key, map or poses changed while it ran is dropped.
+        """
+        job = outcome.job
+        if (
+            job.generation != self._generation
+            or self._keyframe is not job.key
+            or self._corrections_made != job.corrections_before
+        ):
+            return None
+        key, here, now_s, gray = job.key, job.here, job.time_s, outcome.gray
+        if outcome.refined is None:
             # A new key frame would take this frame's pose from odometry, errors of the
             # moment (slip, the frame's timing) included, so the key is kept for
             # FLOOR_ODOMETRY_KEY_TRIES steps while the views still overlap.
             self._key_misses += 1
             if self._key_misses >= FLOOR_ODOMETRY_KEY_TRIES:
+                cam = _camera_xy(here, self.camera_xy_robot)
                 self._keyframe, self._key_misses = _View(gray, here, cam, now_s), 0
             return None
         self._key_misses = 0
         self.floor_odometry_applied += 1
-        T_corrected_odom = Pose2D(*key.pose).compose(Pose2D(*refined).inverse())
-        corrected = T_corrected_odom.compose(pose)
-        at = (corrected.x_m, corrected.y_m, corrected.theta_rad)
+        T_corrected_odom = Pose2D(*key.pose).compose(Pose2D(*outcome.refined).inverse())
+        at = _moved(here, T_corrected_odom)
         self._move_views(T_corrected_odom, after_s=key.time_s)
         self._keyframe = _View(gray, at, _camera_xy(at, self.camera_xy_robot), now_s)
         return T_corrected_odom
@@ -914,16 +931,20 @@ class GroundMapper:
 
     def frontiers(self, T_world_robot: Pose2D) -> FrontierSearch:
         """Frontiers and the goal, with the goals in `given_up` treated as seen."""
+        return search_frontiers(self.frontier_inputs(T_world_robot))
+
+    def frontier_inputs(self, T_world_robot: Pose2D) -> FrontierInputs:
+        """What a frontier search reads, copied (~1 ms; in the thread that runs
+        `update`): the search itself (`search_frontiers`) may then run in any thread."""
         cells = self.grid.classify()
-        world = self.grid.world_grid
         cells[self.given_up.seen & (cells == UNKNOWN)] = FREE
         probe_cells = self.frontier_probe_cells() if self.mapping.frontier_probe_edges else None
-        return find_frontiers(
+        return FrontierInputs(
             cells,
-            world,
+            self.grid.world_grid,
             (T_world_robot.x_m, T_world_robot.y_m),
             self.frontier_params,
-            probe_cells=probe_cells,
+            probe_cells,
         )
 
     def frontier_probe_cells(self) -> NDArray[np.bool_]:
@@ -934,6 +955,62 @@ class GroundMapper:
             self.memory.standing != 0, PROBE_STANDING_REACH_M / self.grid.world_grid.cell_m
         )
         return np.asarray(~(standing | self.given_up.no_probe), dtype=np.bool_)
+
+
+@dataclass(frozen=True)
+class FloorOdometryJob:
+    """One floor odometry step (`GroundMapper.floor_odometry_job`) with what it reads."""
+
+    image: NDArray[np.uint8]
+    floor_mask: NDArray[np.bool_]
+    here: tuple[float, float, float]
+    time_s: float
+    key: _View
+    H_ground_from_image: NDArray[np.float64]
+    generation: int
+    corrections_before: int
+
+
+@dataclass(frozen=True)
+class FloorOdometryOutcome:
+    """A finished step: the frame's grey image and the key frame's refined pose (None:
+    the floors did not line up)."""
+
+    job: FloorOdometryJob
+    gray: NDArray[np.uint8]
+    refined: tuple[float, float, float] | None
+
+
+def run_floor_odometry_job(job: FloorOdometryJob) -> FloorOdometryOutcome:
+    """Refine the key frame's pose against the step's frame (pure; any thread)."""
+    gray = _gray(job.image)
+    refined = refine_reference_pose(
+        gray,
+        job.key.gray,
+        job.floor_mask,
+        job.H_ground_from_image,
+        job.key.pose,
+        job.here,
+        FLOOR_ODOMETRY_REFINE,
+    )
+    return FloorOdometryOutcome(job, gray, refined)
+
+
+class FrontierInputs(NamedTuple):
+    """A frontier search's inputs (`GroundMapper.frontier_inputs`), nobody's to write."""
+
+    cells: NDArray[np.int8]
+    grid: GroundGrid
+    robot_xy: tuple[float, float]
+    params: FrontierParams
+    probe_cells: NDArray[np.bool_] | None
+
+
+def search_frontiers(inputs: FrontierInputs) -> FrontierSearch:
+    """`find_frontiers` on copied inputs (pure; any thread)."""
+    return find_frontiers(
+        inputs.cells, inputs.grid, inputs.robot_xy, inputs.params, probe_cells=inputs.probe_cells
+    )
 
 
 def _moved(

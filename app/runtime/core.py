@@ -140,7 +140,7 @@ class Runtime:
         self.workers = (
             self.perception.worker,
             self.mapping.worker,
-            self.mapping.geometry_worker,
+            self.mapping.background,
             self.steering_stage.worker,
         )
         self.health = HealthStage(self.shared, self.workers, self._tick)

@@ -12,7 +12,7 @@ import logging
 import math
 import time
 from collections.abc import Callable
-from typing import Protocol, runtime_checkable
+from typing import Generic, NamedTuple, Protocol, TypeVar, runtime_checkable
 
 import numpy as np
 from numpy.typing import NDArray
@@ -24,12 +24,16 @@ from app.hardware.device_clock import DeviceClock
 from app.mapping.frames import FLOOR, GroundGrid, Pose2D
 from app.mapping.frontiers import FrontierGoal, FrontierSearch, path_to_point
 from app.mapping.ground_map import (
-    GeometryJob,
+    FloorOdometryJob,
+    FloorOdometryOutcome,
+    FrontierInputs,
     GeometryMode,
     GeometryOutcome,
     GroundMapper,
     MapUpdate,
+    run_floor_odometry_job,
     run_geometry_job,
+    search_frontiers,
 )
 from app.mapping.occupancy import classify_log_odds
 from app.messages import FloorMsg, FrameMsg, MapMsg, WorldMapMsg
@@ -239,9 +243,79 @@ PROBE_ARRIVED_M = 0.25
 """An edge probe's goal this close is reached (`MappingStage._track_goal`)."""
 
 
-FOLLOW_FLOOR_MAX_DEFERRED = 3
-"""Floor odometry gives way to a newer frame at most this many frames in a row: longer,
-and the key frame would fall out of reach (`FLOOR_ODOMETRY_KEY_TRIES` steps)."""
+_R = TypeVar("_R")
+
+
+BACKGROUND_NICER_BY = 10
+"""The mapping stage's background thread runs this much nicer than the daemon: on busy
+cores it gets about a tenth of the stages' share (its jobs can wait; frames cannot)."""
+
+
+class _Beside(Generic[_R]):
+    """One kind of the mapping stage's work that runs beside the mapping thread, on its
+    background worker, one at a time; its result is taken in between mapping steps."""
+
+    def __init__(self, shared: Shared, worker: StageWorker, name: str) -> None:
+        self.shared = shared
+        self.worker = worker
+        self.name = name
+        self._running: tuple[GroundMapper, asyncio.Task[_R]] | None = None
+
+    @property
+    def running(self) -> bool:
+        return self._running is not None
+
+    def start(self, mapper: GroundMapper, fn: Callable[[], _R]) -> None:
+        """Run ``fn`` on the worker; its wall time (queue included) is stage ``name``."""
+        shared = self.shared
+
+        async def timed() -> _R:
+            start = shared.clock()
+            result = await self.worker.run(fn)
+            shared.stages.add(self.name, shared.clock() - start)
+            return result
+
+        self._running = (mapper, asyncio.create_task(timed(), name=self.name))
+
+    def take(self, mapper: GroundMapper) -> _R | None:
+        """The finished result, once (None while it runs, or when it failed or its map
+        has been replaced)."""
+        if self._running is None or not self._running[1].done():
+            return None
+        ran_on, task = self._running
+        self._running = None
+        if task.cancelled() or ran_on is not mapper:
+            return None
+        error = task.exception()
+        if error is not None:
+            log.error("%s failed: %s", self.name, error, exc_info=error, extra={"event": self.name})
+            return None
+        return task.result()
+
+    def drop(self) -> None:
+        """Forget the running one (its thread finishes it; nobody waits)."""
+        if self._running is not None:
+            self._running[1].cancel()
+            self._running = None
+
+
+class _SearchResult(NamedTuple):
+    """A frontier search done beside, with what it was started for."""
+
+    search: FrontierSearch
+    home_goal: FrontierGoal | None
+    exploration: Exploration
+    returning: bool
+    started_s: float
+
+
+class _Stepped(NamedTuple):
+    """What one mapping step made (`MappingStage.step`)."""
+
+    msg: MapMsg
+    update: MapUpdate
+    floor_job: FloorOdometryJob | None
+    floor_correction: Pose2D | None
 
 
 class MappingStage:
@@ -253,19 +327,22 @@ class MappingStage:
     def __init__(self, shared: Shared) -> None:
         self.shared = shared
         self.worker = StageWorker("mapping")
-        self.geometry_worker = StageWorker("geometry")
-        """Runs the geometric tests (parallax, walls) beside the mapping thread, off the
-        motors' path: on the mapping thread they held up every fifth frame's map by
-        10-25 ms."""
-        self._geometry: tuple[GroundMapper, asyncio.Task[GeometryOutcome]] | None = None
+        self.background = StageWorker("mapping-background", nicer_by=BACKGROUND_NICER_BY)
+        """Runs the mapping stage's work that is not on the way to the motors beside the
+        mapping thread: the geometric tests (parallax, walls; on the mapping thread they
+        held up every fifth frame's map by 10-25 ms), floor odometry and the frontier
+        search. Each hands the mapping thread copies and gets copies back."""
+        self._geometry: _Beside[GeometryOutcome] = _Beside(shared, self.background, "geometry")
+        self._floor_step: _Beside[FloorOdometryOutcome] = _Beside(
+            shared, self.background, "floor_odometry"
+        )
+        self._search: _Beside[_SearchResult] = _Beside(shared, self.background, "planning")
         self.frontier: FrontierSearch | None = None
         self.goals_given_up = 0
         """Goals given up this run (each map keeps its own, `GroundMapper.given_up`)."""
         self._goal_since: tuple[tuple[float, float], float] | None = None
         self._frontier_due_s = 0.0
         self._snapshot_due_s = 0.0
-        self._floor_deferred = 0
-        """Frames in a row whose floor odometry step waited for a newer frame."""
         self.exploration = self._new_exploration()
         self.floor_waits = FloatWindow()
         """How long each floor mask waited for the mapping thread (seconds)."""
@@ -286,6 +363,7 @@ class MappingStage:
     def forget_frontier(self) -> None:
         """After a new calibration or map: the old search means nothing."""
         self.frontier = None
+        self._search.drop()
         self._goal_since = None
         self.home_goal = None
         self.exploration = self._new_exploration()
@@ -298,10 +376,14 @@ class MappingStage:
         now_pose: Pose2D,
         geometry: GeometryMode = "inline",
         geometry_outcome: GeometryOutcome | None = None,
-    ) -> tuple[MapMsg, MapUpdate]:
+        floor_outcome: FloorOdometryOutcome | None = None,
+        floor_may_start: bool = False,
+    ) -> _Stepped:
         """In the mapping thread, on the way to the motors: fuse the frame and cut the
         window steering reads, with the goal of the latest frontier search (searched
-        after the message is out, `plan`: a search is up to 0.5 s old anyway)."""
+        beside, `plan`: a search is up to 0.5 s old anyway). Then adopt a finished
+        floor odometry step (its correction goes onto odometry once the map is out) and
+        cut the next one when this frame is due and ``floor_may_start``."""
         config = self.shared.config
         update = mapper.update(
             floor.floor_mask,
@@ -344,7 +426,16 @@ class MappingStage:
             frontier_reason=reason,
             clearance_ahead_m=clearance,
         )
-        return msg, update
+        floor_correction = (
+            mapper.adopt_floor_odometry(floor_outcome) if floor_outcome is not None else None
+        )
+        floor_job = None
+        if floor_may_start:
+            fused_at = update.correction.compose(pose) if update.correction else pose
+            floor_job = mapper.floor_odometry_job(
+                floor.image, floor.floor_mask, fused_at, floor.capture_s
+            )
+        return _Stepped(msg, update, floor_job, floor_correction)
 
     def _goal_and_reason(
         self, frontier: FrontierSearch | None, home_goal: FrontierGoal | None
@@ -364,24 +455,16 @@ class MappingStage:
         now_pose: Pose2D,
         frontier_due: bool,
         snapshot_due: bool,
-        home_xy: tuple[float, float] | None = None,
-        home_goal: FrontierGoal | None = None,
-    ) -> tuple[FrontierSearch | None, WorldMapMsg | None, FrontierGoal | None]:
-        """In the mapping thread, after the frame's message is out: maybe search
-        frontiers, maybe copy the whole map for readers. With ``home_xy`` (returning
-        home) the goal is the way there: found anew with each search, else ``home_goal``
-        (the last)."""
-        config = self.shared.config
-        search = mapper.frontiers(now_pose) if frontier_due else None
-        frontier = search if search is not None else self.frontier
-        world = mapper.grid.world_grid
-        if home_xy is None:
-            home_goal = None
-        elif search is not None:
-            home_goal = path_to_point(search, world, home_xy, config.steering.home_tolerance_m / 2)
+    ) -> tuple[FrontierInputs | None, WorldMapMsg | None]:
+        """In the mapping thread, after the frame's message is out: maybe copy what a
+        frontier search reads (the search runs beside, `_start_search`), maybe copy the
+        whole map for readers (with the newest search's goal)."""
+        inputs = mapper.frontier_inputs(now_pose) if frontier_due else None
         snapshot = None
         if snapshot_due:
-            goal, reason = self._goal_and_reason(frontier, home_goal)
+            world = mapper.grid.world_grid
+            frontier = self.frontier
+            goal, reason = self._goal_and_reason(frontier, self.home_goal)
             whole = mapper.grid.classify()
             whole.setflags(write=False)
             snapshot = WorldMapMsg(
@@ -395,7 +478,7 @@ class MappingStage:
                 frontier_reason=reason,
                 frontier_clusters=len(frontier.clusters) if frontier is not None else 0,
             )
-        return search, snapshot, home_goal
+        return inputs, snapshot
 
     @property
     def returning_home(self) -> bool:
@@ -405,9 +488,8 @@ class MappingStage:
         try:
             await self._run()
         finally:
-            if self._geometry is not None:
-                self._geometry[1].cancel()  # its thread finishes the job; nobody waits
-                self._geometry = None
+            for beside in (self._geometry, self._floor_step, self._search):
+                beside.drop()
 
     async def _run(self) -> None:
         shared = self.shared
@@ -420,83 +502,52 @@ class MappingStage:
             start = shared.clock()
             self.floor_waits.append(start - floor.done_s)
             pose = shared.odometry.pose_at(floor.capture_s)
-            mode, outcome = self._geometry_handover(mapper)
-            msg, update = await self.worker.run(
-                self.step, mapper, floor, pose, shared.odometry.pose, mode, outcome
+            # While a job of a kind runs beside, no other of that kind is cut.
+            geometry_running = self._geometry.running
+            geometry_outcome = self._geometry.take(mapper)
+            floor_running = self._floor_step.running
+            floor_outcome = self._floor_step.take(mapper)
+            stepped = await self.worker.run(
+                self.step,
+                mapper,
+                floor,
+                pose,
+                shared.odometry.pose,
+                "hold" if geometry_running and geometry_outcome is None else "defer",
+                geometry_outcome,
+                floor_outcome,
+                # Not on the frame that adopts a step either: its pose lacks the step's
+                # correction, which a step cut from it would then find again.
+                not floor_running,
             )
             if mapper is not shared.mapper:
                 continue  # recalibrated or replaced meanwhile: this map is gone
+            update = stepped.update
             if update.correction is not None:
                 shared.odometry.correct(update.correction)  # here: odometry is the loop's
-                pose = update.correction.compose(pose)
             if update.match_s is not None:
                 shared.stages.add("scan_match", update.match_s)
             shared.stages.add("mapping", shared.clock() - start)
             shared.counters.frames_mapped += 1
-            shared.maps.publish(msg)
+            shared.maps.publish(stepped.msg)
+            if stepped.floor_correction is not None:
+                shared.odometry.correct(stepped.floor_correction)
             if update.geometry_job is not None:
-                self._start_geometry(mapper, update.geometry_job)
-            await self._follow_floor(mapper, floor, pose, newer_waiting=reader.pending)
+                job = update.geometry_job
+                self._geometry.start(mapper, functools.partial(run_geometry_job, job))
+            if stepped.floor_job is not None:
+                step = stepped.floor_job
+                self._floor_step.start(mapper, functools.partial(run_floor_odometry_job, step))
             await self._plan(mapper, floor)
 
-    def _geometry_handover(
-        self, mapper: GroundMapper
-    ) -> tuple[GeometryMode, GeometryOutcome | None]:
-        """For the next step: whether it may hand out a new job (not while one runs),
-        and the finished job to adopt (dropped when the map was replaced meanwhile)."""
-        if self._geometry is None:
-            return "defer", None
-        tested_mapper, task = self._geometry
-        if not task.done():
-            return "hold", None
-        self._geometry = None
-        if task.cancelled() or tested_mapper is not mapper:
-            return "defer", None
-        error = task.exception()
-        if error is not None:
-            log.error("geometry job failed: %s", error, exc_info=error, extra={"event": "geometry"})
-            return "defer", None
-        return "defer", task.result()
-
-    def _start_geometry(self, mapper: GroundMapper, job: GeometryJob) -> None:
-        shared = self.shared
-
-        async def run_job() -> GeometryOutcome:
-            start = shared.clock()
-            outcome = await self.geometry_worker.run(run_geometry_job, job)
-            shared.stages.add("geometry", shared.clock() - start)
-            return outcome
-
-        self._geometry = (mapper, asyncio.create_task(run_job(), name="geometry-job"))
-
-    async def _follow_floor(
-        self, mapper: GroundMapper, floor: FloorMsg, pose: Pose2D, *, newer_waiting: bool
-    ) -> None:
-        """Floor odometry for the frame just mapped at ``pose`` (off the motors' path: its
-        map is already out), its correction onto odometry. Put off while a newer frame
-        waits to be mapped (the key frame is then compared with a later one), but at
-        most `FOLLOW_FLOOR_MAX_DEFERRED` frames in a row."""
-        shared = self.shared
-        if not mapper.floor_odometry:
-            return
-        if newer_waiting and self._floor_deferred < FOLLOW_FLOOR_MAX_DEFERRED:
-            self._floor_deferred += 1
-            return
-        self._floor_deferred = 0
-        steps, start = mapper.floor_odometry_steps, shared.clock()
-        correction = await self.worker.run(
-            mapper.follow_floor, floor.image, floor.floor_mask, pose, floor.capture_s
-        )
-        if mapper.floor_odometry_steps > steps:
-            shared.stages.add("floor_odometry", shared.clock() - start)
-        if correction is not None and mapper is shared.mapper:
-            shared.odometry.correct(correction)
-
     async def _plan(self, mapper: GroundMapper, floor: FloorMsg) -> None:
-        """The frontier search and the whole-map copy, when due (off the motors' path)."""
+        """The frontier search and the whole-map copy, when due (off the motors' path:
+        the search runs beside, on the background worker; a finished one is taken in
+        here, between mapping steps)."""
         shared = self.shared
+        self._adopt_search(mapper)
         now = shared.clock()
-        frontier_due = now >= self._frontier_due_s
+        frontier_due = now >= self._frontier_due_s and not self._search.running
         if frontier_due:
             self._frontier_due_s = now + shared.config.steering.frontier_period_s
         snapshot_due = now >= self._snapshot_due_s
@@ -504,40 +555,54 @@ class MappingStage:
             self._snapshot_due_s = now + WORLD_MAP_PERIOD_S
         if not (frontier_due or snapshot_due):
             return
-        exploration = self.exploration
-        returning = self.returning_home
-        search, snapshot, home_goal = await self.worker.run(
-            self.plan,
-            mapper,
-            floor,
-            shared.odometry.pose,
-            frontier_due,
-            snapshot_due,
-            exploration.home_xy if returning else None,
-            self.home_goal,
+        inputs, snapshot = await self.worker.run(
+            self.plan, mapper, floor, shared.odometry.pose, frontier_due, snapshot_due
         )
         if mapper is not shared.mapper:
             return
-        if search is not None:
-            self.frontier = search
-            self.home_goal = home_goal
-            if shared.autonomous and not shared.mux.estopped:
-                self._track_goal(mapper, search, now)
-                if exploration is self.exploration:
-                    change = exploration.observe(
-                        search,
-                        now,
-                        shared.odometry.pose,
-                        home_reachable=home_goal is not None or not returning,
-                    )
-                    if change is not None and self.on_phase is not None:
-                        self.on_phase(change)
-            else:
-                self._goal_since = None  # patience counts only while exploring
-        shared.stages.add("planning", shared.clock() - now)
+        if inputs is not None:
+            self._start_search(mapper, inputs, now)
         if snapshot is not None:
             shared.floor_appearances = mapper.memory.appearances()
             shared.world_maps.publish(snapshot)
+
+    def _start_search(self, mapper: GroundMapper, inputs: FrontierInputs, started_s: float) -> None:
+        exploration = self.exploration
+        returning = self.returning_home
+        home_xy = exploration.home_xy if returning else None
+        tolerance_m = self.shared.config.steering.home_tolerance_m / 2
+
+        def search() -> _SearchResult:
+            # With home_xy (returning home) the goal is the way there, found anew.
+            found = search_frontiers(inputs)
+            home_goal = (
+                None if home_xy is None else path_to_point(found, inputs.grid, home_xy, tolerance_m)
+            )
+            return _SearchResult(found, home_goal, exploration, returning, started_s)
+
+        self._search.start(mapper, search)
+
+    def _adopt_search(self, mapper: GroundMapper) -> None:
+        """Take a finished frontier search in (dropped if the map was replaced)."""
+        done = self._search.take(mapper)
+        if done is None:
+            return
+        shared = self.shared
+        self.frontier = done.search
+        self.home_goal = done.home_goal
+        if shared.autonomous and not shared.mux.estopped:
+            self._track_goal(mapper, done.search, done.started_s)
+            if done.exploration is self.exploration:
+                change = self.exploration.observe(
+                    done.search,
+                    done.started_s,
+                    shared.odometry.pose,
+                    home_reachable=done.home_goal is not None or not done.returning,
+                )
+                if change is not None and self.on_phase is not None:
+                    self.on_phase(change)
+        else:
+            self._goal_since = None  # patience counts only while exploring
 
     def _give_up(self, mapper: GroundMapper, xy: tuple[float, float]) -> None:
         # Between mapping steps (this loop awaits each one), so the worker is not reading.

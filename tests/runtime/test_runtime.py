@@ -117,6 +117,7 @@ async def test_the_geometric_tests_run_beside_the_mapping_thread_and_their_resul
             10.0,
             "something seen standing (walls or parallax) in the floor memory",
         )
+        await wait_for(lambda: len(rt.steering_stage.map_waits) > 0, 10.0, "a steering decision")
         report = rt.report()
         assert report["stage_ms"]["geometry"]["n"] >= 1
         assert report["stage_ms"]["geometry"]["p50"] > 0

@@ -3,6 +3,7 @@
 from __future__ import annotations
 
 import asyncio
+import os
 import threading
 import time
 
@@ -83,3 +84,20 @@ async def test_a_stuck_job_is_reported_and_left_behind_without_blocking_the_loop
     assert await worker.wait_closed(1.0)
     assert worker.busy_s() == 0.0
     assert worker.stack() == ""
+
+
+@pytest.mark.skipif(not hasattr(os, "getpriority"), reason="thread priorities are Linux's")
+def test_a_worker_can_run_nicer_than_the_process_and_the_bounds_are_checked() -> None:
+    def own_nice() -> int:
+        return os.getpriority(os.PRIO_PROCESS, threading.get_native_id())
+
+    process_nice = os.getpriority(os.PRIO_PROCESS, 0)
+    nicer, plain = StageWorker("nicer", nicer_by=5), StageWorker("plain")
+    try:
+        assert nicer.submit(own_nice).result(timeout=5) == min(19, process_nice + 5)
+        assert plain.submit(own_nice).result(timeout=5) == process_nice
+    finally:
+        nicer.shutdown()
+        plain.shutdown()
+    with pytest.raises(ValueError, match="nicer_by"):
+        StageWorker("negative", nicer_by=-1)
