@@ -209,6 +209,15 @@ def daemon_section(data: dict[str, Any]) -> list[str]:
         f" **{ms(path['amortized_per_frame_ms'])}** |",
         "",
     ]
+    geometry = path.get("geometry_thread_ms")
+    if geometry:
+        lines += [
+            f"Beside the path: `map_update` handed out {geometry['jobs']} geometry jobs (the"
+            " parallax and walls tests), which the daemon runs on its background worker, off"
+            f" the way to the motors: median {ms(geometry['median'])} ms, p95"
+            f" {ms(geometry['p95'])} ms, max {ms(geometry['max'])} ms each (not in the sums).",
+            "",
+        ]
     return lines
 
 

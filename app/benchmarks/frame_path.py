@@ -29,8 +29,8 @@ rendering is the simulator's cost, not the daemon's. Each frame then goes throug
     `GroundMapper.follow_floor`: a step against the key frame each time the camera has
     moved ``mapping.floor_odometry_step_m`` or turned ``floor_odometry_step_rad``,
     nothing otherwise; ``floor_odometry_steps`` counts the timed frames that ran a step.
-    The daemon runs the step beside the mapping thread (off the way to the motors) and
-    adopts it a frame or more later; here it runs inline, on the frame itself.
+    The mapping stage calls it for every frame once its map is out (off the way to the
+    motors, but in the mapping thread's frame period).
 
 ``parallax``
     `confirm_floor` (`app.perception.planar`), the motion-parallax floor test the

@@ -24,14 +24,11 @@ from app.hardware.device_clock import DeviceClock
 from app.mapping.frames import FLOOR, GroundGrid, Pose2D
 from app.mapping.frontiers import FrontierGoal, FrontierSearch, path_to_point
 from app.mapping.ground_map import (
-    FloorOdometryJob,
-    FloorOdometryOutcome,
     FrontierInputs,
     GeometryMode,
     GeometryOutcome,
     GroundMapper,
     MapUpdate,
-    run_floor_odometry_job,
     run_geometry_job,
     search_frontiers,
 )
@@ -239,6 +236,9 @@ class PerceptionStage:
             )
 
 
+FOLLOW_FLOOR_MAX_DEFERRED = 3
+"""Floor odometry gives way to a newer frame at most this many frames in a row: longer,
+and the key frame would fall out of reach (`FLOOR_ODOMETRY_KEY_TRIES` steps)."""
 PROBE_ARRIVED_M = 0.25
 """An edge probe's goal this close is reached (`MappingStage._track_goal`)."""
 
@@ -309,15 +309,6 @@ class _SearchResult(NamedTuple):
     started_s: float
 
 
-class _Stepped(NamedTuple):
-    """What one mapping step made (`MappingStage.step`)."""
-
-    msg: MapMsg
-    update: MapUpdate
-    floor_job: FloorOdometryJob | None
-    floor_correction: Pose2D | None
-
-
 class MappingStage:
     """``floors`` -> occupancy grid -> ``maps`` (the window steering needs, every frame)
     and ``world_maps`` (the whole map, at most 2 Hz), in its own thread. Runs the
@@ -330,12 +321,11 @@ class MappingStage:
         self.background = StageWorker("mapping-background", nicer_by=BACKGROUND_NICER_BY)
         """Runs the mapping stage's work that is not on the way to the motors beside the
         mapping thread: the geometric tests (parallax, walls; on the mapping thread they
-        held up every fifth frame's map by 10-25 ms), floor odometry and the frontier
-        search. Each hands the mapping thread copies and gets copies back."""
+        held up every fifth frame's map by 10-25 ms) and the frontier search. Each gets
+        copies from the mapping thread and hands copies back."""
+        self._floor_deferred = 0
+        """Frames in a row whose floor odometry step waited for a newer frame."""
         self._geometry: _Beside[GeometryOutcome] = _Beside(shared, self.background, "geometry")
-        self._floor_step: _Beside[FloorOdometryOutcome] = _Beside(
-            shared, self.background, "floor_odometry"
-        )
         self._search: _Beside[_SearchResult] = _Beside(shared, self.background, "planning")
         self.frontier: FrontierSearch | None = None
         self.goals_given_up = 0
@@ -376,14 +366,10 @@ class MappingStage:
         now_pose: Pose2D,
         geometry: GeometryMode = "inline",
         geometry_outcome: GeometryOutcome | None = None,
-        floor_outcome: FloorOdometryOutcome | None = None,
-        floor_may_start: bool = False,
-    ) -> _Stepped:
+    ) -> tuple[MapMsg, MapUpdate]:
         """In the mapping thread, on the way to the motors: fuse the frame and cut the
         window steering reads, with the goal of the latest frontier search (searched
-        beside, `plan`: a search is up to 0.5 s old anyway). Then adopt a finished
-        floor odometry step (its correction goes onto odometry once the map is out) and
-        cut the next one when this frame is due and ``floor_may_start``."""
+        beside, `plan`: a search is up to 0.5 s old anyway)."""
         config = self.shared.config
         update = mapper.update(
             floor.floor_mask,
@@ -426,16 +412,7 @@ class MappingStage:
             frontier_reason=reason,
             clearance_ahead_m=clearance,
         )
-        floor_correction = (
-            mapper.adopt_floor_odometry(floor_outcome) if floor_outcome is not None else None
-        )
-        floor_job = None
-        if floor_may_start:
-            fused_at = update.correction.compose(pose) if update.correction else pose
-            floor_job = mapper.floor_odometry_job(
-                floor.image, floor.floor_mask, fused_at, floor.capture_s
-            )
-        return _Stepped(msg, update, floor_job, floor_correction)
+        return msg, update
 
     def _goal_and_reason(
         self, frontier: FrontierSearch | None, home_goal: FrontierGoal | None
@@ -488,7 +465,7 @@ class MappingStage:
         try:
             await self._run()
         finally:
-            for beside in (self._geometry, self._floor_step, self._search):
+            for beside in (self._geometry, self._search):
                 beside.drop()
 
     async def _run(self) -> None:
@@ -505,9 +482,7 @@ class MappingStage:
             # While a job of a kind runs beside, no other of that kind is cut.
             geometry_running = self._geometry.running
             geometry_outcome = self._geometry.take(mapper)
-            floor_running = self._floor_step.running
-            floor_outcome = self._floor_step.take(mapper)
-            stepped = await self.worker.run(
+            msg, update = await self.worker.run(
                 self.step,
                 mapper,
                 floor,
@@ -515,30 +490,48 @@ class MappingStage:
                 shared.odometry.pose,
                 "hold" if geometry_running and geometry_outcome is None else "defer",
                 geometry_outcome,
-                floor_outcome,
-                # Not on the frame that adopts a step either: its pose lacks the step's
-                # correction, which a step cut from it would then find again.
-                not floor_running,
             )
             if mapper is not shared.mapper:
                 continue  # recalibrated or replaced meanwhile: this map is gone
-            update = stepped.update
             if update.correction is not None:
                 shared.odometry.correct(update.correction)  # here: odometry is the loop's
+                pose = update.correction.compose(pose)
             if update.match_s is not None:
                 shared.stages.add("scan_match", update.match_s)
             shared.stages.add("mapping", shared.clock() - start)
             shared.counters.frames_mapped += 1
-            shared.maps.publish(stepped.msg)
-            if stepped.floor_correction is not None:
-                shared.odometry.correct(stepped.floor_correction)
+            shared.maps.publish(msg)
             if update.geometry_job is not None:
                 job = update.geometry_job
                 self._geometry.start(mapper, functools.partial(run_geometry_job, job))
-            if stepped.floor_job is not None:
-                step = stepped.floor_job
-                self._floor_step.start(mapper, functools.partial(run_floor_odometry_job, step))
+            await self._follow_floor(mapper, floor, pose, newer_waiting=reader.pending)
             await self._plan(mapper, floor)
+
+    async def _follow_floor(
+        self, mapper: GroundMapper, floor: FloorMsg, pose: Pose2D, *, newer_waiting: bool
+    ) -> None:
+        """Floor odometry for the frame just mapped at ``pose``, on the mapping thread but
+        off the motors' path (its map is already out), its correction onto odometry at
+        once: the pose of every later frame needs it, so it does not wait behind the
+        background work (there, on a quiet machine, steps arrived 85 ms late at the
+        median and the pose drifted further). Put off while a newer frame waits to be
+        mapped (the key frame is then compared with a later one), but at most
+        `FOLLOW_FLOOR_MAX_DEFERRED` frames in a row."""
+        shared = self.shared
+        if not mapper.floor_odometry:
+            return
+        if newer_waiting and self._floor_deferred < FOLLOW_FLOOR_MAX_DEFERRED:
+            self._floor_deferred += 1
+            return
+        self._floor_deferred = 0
+        steps, start = mapper.floor_odometry_steps, shared.clock()
+        correction = await self.worker.run(
+            mapper.follow_floor, floor.image, floor.floor_mask, pose, floor.capture_s
+        )
+        if mapper.floor_odometry_steps > steps:
+            shared.stages.add("floor_odometry", shared.clock() - start)
+        if correction is not None and mapper is shared.mapper:
+            shared.odometry.correct(correction)
 
     async def _plan(self, mapper: GroundMapper, floor: FloorMsg) -> None:
         """The frontier search and the whole-map copy, when due (off the motors' path:
