@@ -737,28 +737,30 @@ class GroundMapper:
         T_world_robot: Pose2D,
         now_s: float,
     ) -> Pose2D | None:
-        """Floor odometry for a frame `update` has fused at ``T_world_robot``, inline:
+        """Floor odometry for a frame `update` has fused at ``T_world_robot``:
         ``T_corrected_odom`` to left-multiply onto odometry, or None (off, not due, or
         the floors did not line up; `floor_odometry_steps` counts the frames compared).
-        The daemon cuts the step (`floor_odometry_job`), runs it beside the mapping
-        thread (`run_floor_odometry_job`) and adopts it (`adopt_floor_odometry`) after
-        a later frame's map is out; the frame itself stays fused at its odometry pose,
-        off by at most one step's slip."""
-        job = self.floor_odometry_job(image, floor_mask, T_world_robot, now_s)
-        return None if job is None else self.adopt_floor_odometry(run_floor_odometry_job(job))
+        Called after the frame's map is out, so the step (~5 ms) is not on the way to
+        the motors; the frame itself stays fused at its odometry pose, off by at most
+        one step's slip."""
+        if not self.floor_odometry:
+            return None
+        return self._floor_odometry(image, floor_mask, T_world_robot, now_s)
 
-    def floor_odometry_job(
+    def _floor_odometry(
         self, image: NDArray[np.uint8], floor_mask: NDArray[np.bool_], pose: Pose2D, now_s: float
-    ) -> FloorOdometryJob | None:
-        """A floor odometry step for this frame, or None (off or not due).
+    ) -> Pose2D | None:
+        """``T_corrected_odom`` from the floor's motion since the key frame, or None.
 
         Once the camera has moved ``floor_odometry_step_m`` or turned
         ``floor_odometry_step_rad`` since the key frame, the key frame's pose is refined
         against this frame's floor (`refine_reference_pose`, with this frame at its
-        odometry pose). The first frame becomes the key frame.
+        odometry pose). The key frame's pose is the one trusted (it was corrected the
+        same way), so the refined relative pose moves this frame instead:
+        ``T_world_key @ inv(T_world_key_refined)``, and this frame becomes the key frame.
+        Where the floors do not line up, the key is tried again a step further on, and
+        after `FLOOR_ODOMETRY_KEY_TRIES` misses odometry bridges the gap.
         """
-        if not self.floor_odometry:
-            return None
         here = (pose.x_m, pose.y_m, pose.theta_rad)
         cam = _camera_xy(here, self.camera_xy_robot)
         key = self._keyframe
@@ -774,48 +776,29 @@ class GroundMapper:
         ):
             return None
         self.floor_odometry_steps += 1
-        return FloorOdometryJob(
-            image=image,
-            floor_mask=floor_mask,
-            here=here,
-            time_s=now_s,
-            key=key,
-            H_ground_from_image=self.calibration.H_ground_from_image,
-            generation=self._generation,
-            corrections_before=self._corrections_made,
+        gray = _gray(image)  # only on the frames compared: most are not
+        refined = refine_reference_pose(
+            gray,
+            key.gray,
+            floor_mask,
+            self.calibration.H_ground_from_image,
+            key.pose,
+            here,
+            FLOOR_ODOMETRY_REFINE,
         )
-
-    def adopt_floor_odometry(self, outcome: FloorOdometryOutcome) -> Pose2D | None:
-        """A finished step's ``T_corrected_odom``, or None.
-
-        The key frame's pose is the one trusted (it was corrected the same way), so the
-        refined relative pose moves the step's frame instead:
-        ``T_world_key @ inv(T_world_key_refined)``, and that frame becomes the key
-        frame. Where the floors did not line up, the key is tried again a step further
-        on, and after `FLOOR_ODOMETRY_KEY_TRIES` misses odometry bridges the gap. A
-        step whose key, map or poses changed while it ran is dropped.
-        """
-        job = outcome.job
-        if (
-            job.generation != self._generation
-            or self._keyframe is not job.key
-            or self._corrections_made != job.corrections_before
-        ):
-            return None
-        key, here, now_s, gray = job.key, job.here, job.time_s, outcome.gray
-        if outcome.refined is None:
+        if refined is None:
             # A new key frame would take this frame's pose from odometry, errors of the
             # moment (slip, the frame's timing) included, so the key is kept for
             # FLOOR_ODOMETRY_KEY_TRIES steps while the views still overlap.
             self._key_misses += 1
             if self._key_misses >= FLOOR_ODOMETRY_KEY_TRIES:
-                cam = _camera_xy(here, self.camera_xy_robot)
                 self._keyframe, self._key_misses = _View(gray, here, cam, now_s), 0
             return None
         self._key_misses = 0
         self.floor_odometry_applied += 1
-        T_corrected_odom = Pose2D(*key.pose).compose(Pose2D(*outcome.refined).inverse())
-        at = _moved(here, T_corrected_odom)
+        T_corrected_odom = Pose2D(*key.pose).compose(Pose2D(*refined).inverse())
+        corrected = T_corrected_odom.compose(pose)
+        at = (corrected.x_m, corrected.y_m, corrected.theta_rad)
         self._move_views(T_corrected_odom, after_s=key.time_s)
         self._keyframe = _View(gray, at, _camera_xy(at, self.camera_xy_robot), now_s)
         return T_corrected_odom
@@ -955,45 +938,6 @@ class GroundMapper:
             self.memory.standing != 0, PROBE_STANDING_REACH_M / self.grid.world_grid.cell_m
         )
         return np.asarray(~(standing | self.given_up.no_probe), dtype=np.bool_)
-
-
-@dataclass(frozen=True)
-class FloorOdometryJob:
-    """One floor odometry step (`GroundMapper.floor_odometry_job`) with what it reads."""
-
-    image: NDArray[np.uint8]
-    floor_mask: NDArray[np.bool_]
-    here: tuple[float, float, float]
-    time_s: float
-    key: _View
-    H_ground_from_image: NDArray[np.float64]
-    generation: int
-    corrections_before: int
-
-
-@dataclass(frozen=True)
-class FloorOdometryOutcome:
-    """A finished step: the frame's grey image and the key frame's refined pose (None:
-    the floors did not line up)."""
-
-    job: FloorOdometryJob
-    gray: NDArray[np.uint8]
-    refined: tuple[float, float, float] | None
-
-
-def run_floor_odometry_job(job: FloorOdometryJob) -> FloorOdometryOutcome:
-    """Refine the key frame's pose against the step's frame (pure; any thread)."""
-    gray = _gray(job.image)
-    refined = refine_reference_pose(
-        gray,
-        job.key.gray,
-        job.floor_mask,
-        job.H_ground_from_image,
-        job.key.pose,
-        job.here,
-        FLOOR_ODOMETRY_REFINE,
-    )
-    return FloorOdometryOutcome(job, gray, refined)
 
 
 class FrontierInputs(NamedTuple):

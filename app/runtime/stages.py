@@ -236,11 +236,13 @@ class PerceptionStage:
             )
 
 
+PROBE_ARRIVED_M = 0.25
+"""An edge probe's goal this close is reached (`MappingStage._track_goal`)."""
+
+
 FOLLOW_FLOOR_MAX_DEFERRED = 3
 """Floor odometry gives way to a newer frame at most this many frames in a row: longer,
 and the key frame would fall out of reach (`FLOOR_ODOMETRY_KEY_TRIES` steps)."""
-PROBE_ARRIVED_M = 0.25
-"""An edge probe's goal this close is reached (`MappingStage._track_goal`)."""
 
 
 _R = TypeVar("_R")
@@ -323,8 +325,6 @@ class MappingStage:
         mapping thread: the geometric tests (parallax, walls; on the mapping thread they
         held up every fifth frame's map by 10-25 ms) and the frontier search. Each gets
         copies from the mapping thread and hands copies back."""
-        self._floor_deferred = 0
-        """Frames in a row whose floor odometry step waited for a newer frame."""
         self._geometry: _Beside[GeometryOutcome] = _Beside(shared, self.background, "geometry")
         self._search: _Beside[_SearchResult] = _Beside(shared, self.background, "planning")
         self.frontier: FrontierSearch | None = None
@@ -333,6 +333,8 @@ class MappingStage:
         self._goal_since: tuple[tuple[float, float], float] | None = None
         self._frontier_due_s = 0.0
         self._snapshot_due_s = 0.0
+        self._floor_deferred = 0
+        """Frames in a row whose floor odometry step waited for a newer frame."""
         self.exploration = self._new_exploration()
         self.floor_waits = FloatWindow()
         """How long each floor mask waited for the mapping thread (seconds)."""

@@ -12,7 +12,7 @@ import numpy as np
 from app.config import CameraConfig, load_config
 from app.mapping.calibration import Intrinsics
 from app.mapping.frames import Pose2D
-from app.mapping.ground_map import FloorOdometryOutcome, GroundMapper, run_floor_odometry_job
+from app.mapping.ground_map import GroundMapper
 from app.sim.setup import camera_model, renderer_from_config, sim_floor_calibration
 
 CONFIG = Path(__file__).resolve().parents[2] / "config.toml"
@@ -33,12 +33,7 @@ def pose_error(a: Pose2D, b: Pose2D) -> tuple[float, float]:
 
 
 def drive(
-    mapper: GroundMapper,
-    renderer: object,
-    heading_rad: float,
-    image_of: object = None,
-    *,
-    beside: bool = False,
+    mapper: GroundMapper, renderer: object, heading_rad: float, image_of: object = None
 ) -> tuple[Pose2D, Pose2D, Pose2D]:
     """Drive the wooden floor of the shipped flat, starting at ``heading_rad`` (0: along
     the planks): 0.5 m ahead, a 40 degree spin on the spot, 0.3 m on, at 2 cm and 1.5
@@ -46,31 +41,19 @@ def drive(
     pull 0.2 degrees left every step. As in the daemon, each frame is fused first and
     followed on the floor after, and each correction is left-multiplied onto odometry.
     Returns, at the last frame, the truth, the wheels' own pose and the frame's pose
-    corrected by its own step (where the next frame starts from).
-
-    ``beside``: as the daemon runs it, each step is cut from a frame, run apart and
-    adopted after the next frame is fused (and no step is cut from the frame that
-    adopts one)."""
+    corrected by its own step (where the next frame starts from)."""
     truth = Pose2D(3.2, 3.05, heading_rad)
     wheels = truth
     correction = Pose2D(0.0, 0.0, 0.0)
     steps = [(0.02, 0.0)] * 25 + [(0.0, math.radians(1.5))] * 27 + [(0.02, 0.0)] * 15
     fused = truth
-    pending: FloorOdometryOutcome | None = None
     for k, (ahead_m, turn_rad) in enumerate(steps):
         frame = renderer.render(truth)  # type: ignore[attr-defined]
         image = frame.image if image_of is None else image_of(frame)  # type: ignore[operator]
         fused = correction.compose(wheels)
         update = mapper.update(frame.floor_mask, fused, 0.05 * k, image)
         assert update.correction is None  # scan matching is off
-        if not beside:
-            step = mapper.follow_floor(image, frame.floor_mask, fused, 0.05 * k)
-        elif pending is not None:
-            step, pending = mapper.adopt_floor_odometry(pending), None
-        else:
-            step = None
-            job = mapper.floor_odometry_job(image, frame.floor_mask, fused, 0.05 * k)
-            pending = run_floor_odometry_job(job) if job is not None else None
+        step = mapper.follow_floor(image, frame.floor_mask, fused, 0.05 * k)
         if step is not None:
             correction = step.compose(correction)
             fused = step.compose(fused)
@@ -80,35 +63,6 @@ def drive(
                 Pose2D(1.06 * ahead_m, 0.0, 1.08 * turn_rad + math.radians(0.2))
             )
     return truth, wheels, fused
-
-
-def test_steps_run_beside_the_mapping_thread_follow_the_floor_as_well() -> None:
-    """The daemon's way: a step adopted one frame after it was cut (its frame fused at
-    the pose of the moment) still keeps the pose on the floor, every step lined up."""
-    mapper, renderer = mapper_and_renderer(floor_odometry=True)
-    truth, wheels, fused = drive(mapper, renderer, 0.5, beside=True)
-    off_m, off_rad = pose_error(fused, truth)
-    assert pose_error(wheels, truth)[0] > 0.08
-    # Off by what the wheels add in the frames a step takes to arrive (against 0.08 m
-    # and 15 degrees without it).
-    assert off_m < 0.01 and off_rad < math.radians(1.0)
-    # Every step lined up (the last one, cut from the last frame, is still out).
-    assert 10 <= mapper.floor_odometry_applied >= mapper.floor_odometry_steps - 1
-
-
-def test_a_step_whose_key_frame_or_map_changed_while_it_ran_is_dropped() -> None:
-    mapper, renderer = mapper_and_renderer(floor_odometry=True)
-    start = Pose2D(3.2, 3.05, 0.5)
-    on = start.compose(Pose2D(0.08, 0.0, 0.0))
-    first, second = (renderer.render(p) for p in (start, on))  # type: ignore[attr-defined]
-    assert mapper.floor_odometry_job(first.image, first.floor_mask, start, 0.0) is None  # key
-    job = mapper.floor_odometry_job(second.image, second.floor_mask, on, 0.1)
-    assert job is not None
-    outcome = run_floor_odometry_job(job)
-    assert outcome.refined is not None
-    mapper.restore(mapper.snapshot())  # a new map: the key frame is gone
-    assert mapper.adopt_floor_odometry(outcome) is None
-    assert mapper.floor_odometry_applied == 0
 
 
 def test_the_pose_follows_the_floors_motion_where_the_wheels_slip() -> None:
