@@ -70,7 +70,7 @@ _STORED_VIEWS = 24
 _VIEW_STEP_M = 0.02
 """...one per this much camera travel."""
 _CORRECTIONS_KEPT = 16
-"""Pose corrections remembered for a handed-out parallax test (a few a second come)."""
+"""Pose corrections remembered for a handed-out geometry job (a few a second come)."""
 
 
 class _View(NamedTuple):

@@ -279,6 +279,13 @@ class _Beside(Generic[_R]):
 
         self._running = (mapper, asyncio.create_task(timed(), name=self.name))
 
+    def handover(self, mapper: GroundMapper) -> tuple[bool, _R | None]:
+        """For the next mapping step: whether a new one may start (none is running, or
+        the one that ran is taken now) and the finished result, if any (`take`)."""
+        busy = self.running
+        result = self.take(mapper)
+        return not busy or result is not None, result
+
     def take(self, mapper: GroundMapper) -> _R | None:
         """The finished result, once (None while it runs, or when it failed or its map
         has been replaced)."""
@@ -481,16 +488,15 @@ class MappingStage:
             start = shared.clock()
             self.floor_waits.append(start - floor.done_s)
             pose = shared.odometry.pose_at(floor.capture_s)
-            # While a job of a kind runs beside, no other of that kind is cut.
-            geometry_running = self._geometry.running
-            geometry_outcome = self._geometry.take(mapper)
+            # While a job runs beside, no other is cut (its tests stay due).
+            may_start, geometry_outcome = self._geometry.handover(mapper)
             msg, update = await self.worker.run(
                 self.step,
                 mapper,
                 floor,
                 pose,
                 shared.odometry.pose,
-                "hold" if geometry_running and geometry_outcome is None else "defer",
+                "defer" if may_start else "hold",
                 geometry_outcome,
             )
             if mapper is not shared.mapper:
