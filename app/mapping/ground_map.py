@@ -28,6 +28,7 @@ from app.mapping.frontiers import (
 from app.mapping.ipm import BirdseyeMap, birdseye_floor_patch, build_birdseye_map
 from app.mapping.occupancy import (
     FREE,
+    OCCUPIED,
     UNKNOWN,
     OccupancyGrid,
     OccupancyParams,
@@ -938,6 +939,19 @@ class GroundMapper:
             self.memory.standing != 0, PROBE_STANDING_REACH_M / self.grid.world_grid.cell_m
         )
         return np.asarray(~(standing | self.given_up.no_probe), dtype=np.bool_)
+
+    def probe_edge_share(self) -> float | None:
+        """Of the cells the map calls occupied, the fraction the frontier search may probe
+        (`frontier_probe_cells`); None without probes or occupied cells. Near zero,
+        exploration ends at the first edge the robot cannot prove floor."""
+        if not self.mapping.frontier_probe_edges:
+            return None
+        occupied = self.grid.classify() == OCCUPIED
+        n_occupied = int(np.count_nonzero(occupied))
+        if n_occupied == 0:
+            return None
+        probe = int(np.count_nonzero(occupied & self.frontier_probe_cells()))
+        return round(probe / n_occupied, 4)
 
 
 class FrontierInputs(NamedTuple):

@@ -9,6 +9,8 @@ import os
 import statistics
 from typing import TYPE_CHECKING, Any
 
+import numpy as np
+
 from app.runtime.service_status import service_status
 from app.runtime.telemetry import newest, percentiles_ms
 
@@ -134,7 +136,7 @@ def exploration_status(rt: Runtime) -> dict[str, Any]:
 def report(rt: Runtime) -> dict[str, Any]:
     """The run report ``floornav run --report`` writes (sim-only fields null on
     hardware)."""
-    from app.sim.truth import coverage_reachable, map_truth_scores
+    from app.sim.truth import coverage_reachable, map_truth_scores, marks_near_truth
 
     shared = rt.shared
     counters = shared.counters
@@ -143,8 +145,13 @@ def report(rt: Runtime) -> dict[str, Any]:
     mapper = shared.mapper
     truth: dict[str, float] | None = None
     reachable: float | None = None
+    standing_near: float | None = None
     if sim is not None and mapper is not None and rt.devices.camera is sim.camera:
         classes = mapper.grid.classify()
+        near = marks_near_truth(
+            mapper.memory.standing != 0, mapper.grid.world_grid, sim.T_plan_odom, sim.world
+        )
+        standing_near = round(near, 4) if near is not None else None
         truth = map_truth_scores(
             classes, mapper.grid.world_grid, sim.T_plan_odom, sim.world
         ).as_dict()
@@ -198,6 +205,12 @@ def report(rt: Runtime) -> dict[str, Any]:
             "appearances": len(mapper.memory.appearances()),
             "unlearned": mapper.memory.unlearned,
             "standing_by_horizon_frames": mapper.standing_frames,
+            "standing_m2": round(
+                float(np.count_nonzero(mapper.memory.standing)) * mapper.grid.world_grid.cell_m**2,
+                2,
+            ),
+            "standing_near_truth": standing_near,
+            "probe_edge_share": mapper.probe_edge_share(),
             "parallax_tests": mapper.parallax_frames,
             "parallax_unaligned": mapper.parallax_unaligned,
             "second_passes": counters.learned_floor_passes,

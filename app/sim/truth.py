@@ -1,5 +1,6 @@
 """Score a map against the simulated world's ground truth (pure): how it agrees with the
-floor plan (`map_truth_scores`), and how much of the floor a robot could reach it has
+floor plan (`map_truth_scores`), how many of a layer's marks lie at real obstacles
+(`marks_near_truth`), and how much of the floor a robot could reach it has
 mapped (`reachable_free_mask`, `coverage_reachable`)."""
 
 from __future__ import annotations
@@ -77,6 +78,38 @@ def map_truth_scores(
         seen_m2=float(seen.sum()) * cell_area,
         free_truth_m2=n_truth_free * cell_area,
     )
+
+
+def marks_near_truth(
+    marks: NDArray[np.bool_],
+    map_grid: GroundGrid,
+    T_plan_map: Pose2D,
+    world: World,
+) -> float | None:
+    """Of the map cells in ``marks`` (a (rows, cols) bool layer on ``map_grid``, such as
+    the cells geometry saw standing), the fraction whose centre lies within one cell of
+    a wall or box in the plan (the nearness `map_truth_scores` uses for occupied cells),
+    looked up at the world's occupancy of the map's cell size. None when nothing is
+    marked; marks off the plan's grid count as far from everything."""
+    if marks.shape != map_grid.shape:
+        raise ValueError(f"marks: expected shape {map_grid.shape}, got {marks.shape}")
+    rows, cols = np.nonzero(marks)
+    if rows.size == 0:
+        return None
+    x, y = map_grid.cell_centers()
+    plan = T_plan_map.apply(np.column_stack((x[rows, cols], y[rows, cols])))
+    truth_grid, truth_occ = world.occupancy(map_grid.cell_m)
+    near_truth = _dilate(truth_occ == 1)
+    rc = truth_grid.cell_of(plan)
+    on_grid = (
+        (rc[:, 0] >= 0)
+        & (rc[:, 0] < truth_grid.rows)
+        & (rc[:, 1] >= 0)
+        & (rc[:, 1] < truth_grid.cols)
+    )
+    near = np.zeros(rows.size, dtype=bool)
+    near[on_grid] = near_truth[rc[on_grid, 0], rc[on_grid, 1]]
+    return float(near.mean())
 
 
 def reachable_free_mask(

@@ -309,6 +309,10 @@ def test_a_plain_walls_foot_is_remembered_standing_and_kept_from_edge_probes() -
     assert wall.sum() >= 10
     assert not (mapper.frontier_probe_cells() & wall).any()
     assert plain.frontier_probe_cells()[wall].all()
+    # The report's share of probe-able edges says the same.
+    assert plain.probe_edge_share() == 1.0
+    assert mapper.probe_edge_share() is not None
+    assert mapper.probe_edge_share() <= 1.0 - wall.sum() / occupied.sum() + 1e-9
 
 
 def test_unsure_pixels_give_no_evidence_and_the_rest_fuses_as_without() -> None:

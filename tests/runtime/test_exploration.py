@@ -17,6 +17,7 @@ import pytest
 from app.config import load_config
 from app.devices import open_devices
 from app.runtime import Runtime
+from app.sim.truth import marks_near_truth
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -57,6 +58,21 @@ async def test_twenty_seconds_in_each_harder_world(world: str) -> None:
         report = runtime.report()
         assert devices.sim is not None
         world_name = devices.sim.world.name
+        # The standing layer's scores: the mapper's own layer, taken to the plan frame.
+        mapper = runtime.shared.mapper
+        assert mapper is not None
+        near = marks_near_truth(
+            mapper.memory.standing != 0,
+            mapper.grid.world_grid,
+            devices.sim.T_plan_odom,
+            devices.sim.world,
+        )
+        memory = report["floor_memory"]
+        assert memory["standing_near_truth"] == (None if near is None else round(near, 4))
+        assert memory["probe_edge_share"] == mapper.probe_edge_share()
+        assert memory["standing_m2"] == round(
+            float((mapper.memory.standing != 0).sum()) * mapper.grid.world_grid.cell_m**2, 2
+        )
     print(
         f"\n20 s in {world}: reachable coverage {report['coverage_reachable']}, map IoU"
         f" {report['map_iou']}, {report['distance_m']} m, pose error {report['pose_error_m']},"

@@ -16,7 +16,7 @@ from app.mapping.frames import GroundGrid, Pose2D
 from app.mapping.occupancy import FREE, UNKNOWN
 from app.sim.render import CameraModel, Renderer
 from app.sim.setup import project_floor_points, renderer_from_config, world_from_config
-from app.sim.truth import coverage_reachable, reachable_free_mask
+from app.sim.truth import coverage_reachable, marks_near_truth, reachable_free_mask
 from app.sim.world import DEFAULT_ROBOT_RADIUS_M, World, WorldError, load_named_world, parse_world
 from app.sim.worlds import DEFAULT_WORLD_PATH, UnknownWorldError, resolve_world_path, world_names
 
@@ -421,6 +421,37 @@ def test_coverage_reachable_counts_reachable_floor_the_map_calls_free() -> None:
     got = coverage_reachable(rotated, map_grid, start, world, ROBOT_RADIUS_M)
     assert got == pytest.approx(expected, abs=0.02)
     assert coverage_reachable(np.full_like(west, UNKNOWN), grid, identity, world, 0.12) == 0.0
+
+
+def test_marks_near_truth_is_the_share_of_marks_at_walls_and_boxes() -> None:
+    world = parse_world("[start]\nx_m = 1.0\ny_m = 1.0\n[[rooms]]\nrect_m = [0, 0, 2, 2]\n")
+    grid, _ = world.occupancy(CELL_M)
+    identity = Pose2D()
+    marks = np.zeros(grid.shape, dtype=bool)
+    assert marks_near_truth(marks, grid, identity, world) is None
+
+    def mark(map_grid: GroundGrid, layer: np.ndarray, xy: tuple[float, float]) -> None:
+        row, col = map_grid.cell_of(np.array([xy]))[0]
+        layer[row, col] = True
+
+    mark(grid, marks, (1.0, 0.03))  # on the south wall
+    mark(grid, marks, (1.0, 1.0))  # the middle of the room
+    assert marks_near_truth(marks, grid, identity, world) == 0.5
+    # A map in the robot's start frame, turned by 90 degrees: each mark is taken to the
+    # plan first; one off the plan's grid is far from everything.
+    start = Pose2D(1.0, 1.0, math.pi / 2)
+    map_grid = GroundGrid.covering(
+        x_min_m=-4.0, x_max_m=4.0, y_min_m=-4.0, y_max_m=4.0, cell_m=CELL_M
+    )
+    turned = np.zeros(map_grid.shape, dtype=bool)
+    on_wall = start.inverse().apply(np.array([[1.0, 0.03]]))[0]
+    mark(map_grid, turned, (float(on_wall[0]), float(on_wall[1])))
+    mark(map_grid, turned, (0.0, 0.0))  # the start, mid-room
+    mark(map_grid, turned, (1.0, 1.0))  # the plan's corner (0, 2)
+    mark(map_grid, turned, (-3.5, 0.0))  # 3.5 m behind the start: outside the plan
+    assert marks_near_truth(turned, map_grid, start, world) == 0.5
+    with pytest.raises(ValueError, match="shape"):
+        marks_near_truth(marks[1:], grid, identity, world)
 
 
 def test_every_world_renders_with_the_kernels_the_default_world_compiled() -> None:
