@@ -83,19 +83,24 @@ def table(command: str) -> str:
         "[measurements/](measurements/) (`explore-WORLD-sSEED.json`); the pictures in",
         "[exploration/](exploration/) show each final map (right: free white, occupied",
         "black, unknown grey) beside the world's truth (left), start green, end red.",
+        "*Standing near truth*: of the cells geometry marked standing, the share within",
+        "one cell of a real wall or box; *probe-able edges*: of the cells the map calls",
+        "occupied, the share the frontier search may still probe (near 0, exploration",
+        "ends at the first edge the robot cannot prove floor); '-' for older reports.",
         "",
         f"Command: `{command}`",
         "",
         "| world | seed | s | reachable coverage | coverage | time to 50 % / 90 % s | "
-        "final state | home m | collisions | occupied near truth | map IoU | "
-        "pose error p95 m | latency p95 ms |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "final state | home m | collisions | occupied near truth | standing near truth | "
+        "probe-able edges | map IoU | pose error p95 m | latency p95 ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for path in sorted(MEASUREMENTS.glob("explore-*.json")):
         r = json.loads(path.read_text())
         truth = r.get("map_truth") or {}
         ttc = r.get("time_to_coverage_s") or {}
         pose = r.get("pose_error_m") or {}
+        memory = r.get("floor_memory") or {}
         rows.append(
             "| "
             + " | ".join(
@@ -110,6 +115,8 @@ def table(command: str) -> str:
                     cell((r.get("exploration") or {}).get("home_distance_m"), 2),
                     cell(r.get("collisions")),
                     cell(truth.get("occupied_near_truth")),
+                    cell(memory.get("standing_near_truth")),
+                    cell(memory.get("probe_edge_share")),
                     cell(truth.get("map_iou")),
                     cell(pose.get("p95")),
                     cell((r.get("latency_ms") or {}).get("p95"), 1),

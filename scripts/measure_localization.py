@@ -22,18 +22,20 @@ import math
 import statistics
 import sys
 import time
+from dataclasses import dataclass
 from pathlib import Path
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
 
-from app.config import load_config  # noqa: E402
+from app.config import FloornavConfig, load_config  # noqa: E402
 from app.control.kinematics import WheelOdometry, twist_to_pwm  # noqa: E402
 from app.control.mux import Twist  # noqa: E402
 from app.devices import robot_params  # noqa: E402
 from app.mapping.frames import Pose2D  # noqa: E402
 from app.mapping.ground_map import GroundMapper  # noqa: E402
 from app.perception.pipeline import FloorSegmenter  # noqa: E402
+from app.sim.render import Renderer  # noqa: E402
 from app.sim.robot import SimRobot  # noqa: E402
 from app.sim.setup import camera_model, renderer_from_config, sim_floor_calibration  # noqa: E402
 from app.sim.truth import map_truth_scores  # noqa: E402
@@ -41,7 +43,10 @@ from app.sim.truth import map_truth_scores  # noqa: E402
 FRAME_S = 1 / 30
 PHYSICS_S = 0.01
 
-TOURS = {
+Leg = str | tuple[float, float]
+"""A tour's step: a plan-frame waypoint, or "spin" (a full turn in place)."""
+
+TOURS: dict[str, list[Leg]] = {
     # Plan-frame waypoints; "spin" turns a full circle in place (exploration's look-around).
     "two-rooms": [
         "spin",
@@ -56,6 +61,20 @@ TOURS = {
         "spin",
         (3.9, 3.4),
         (1.3, 3.2),
+    ],
+    # The living room: in front of the hallway's door, of the kitchen's, by the armchair.
+    "home": [
+        "spin",
+        (2.0, 3.75),
+        "spin",
+        (4.7, 6.1),
+        "spin",
+        (3.3, 5.0),
+        (3.4, 7.0),
+        "spin",
+        (3.4, 5.0),
+        (1.5, 4.0),
+        "spin",
     ],
 }
 
@@ -73,11 +92,26 @@ LOCALIZATION = {
 }
 
 
-def run_tour(world: str, seed: int, localization: str, *, slip: bool = True) -> dict[str, object]:
-    sim: dict[str, object] = {"world_file": world, "seed": seed}
-    if not slip:
-        sim.update(slip_sigma_frac=0.0, wheel_scale_sigma_frac=0.0, encoder_tick_noise=0.0)
-    config = load_config(ROOT / "config.toml", sim=sim, mapping=LOCALIZATION[localization])
+@dataclass
+class Tour:
+    """A driven tour: the simulator, the mapper it fed and how the pose kept."""
+
+    renderer: Renderer
+    robot: SimRobot
+    mapper: GroundMapper
+    odometry: WheelOdometry
+    start: Pose2D
+    errors: list[float]
+    """Distance between the estimated and the true pose, every frame."""
+    tour_s: float
+    finished: bool
+    wall_s: float
+
+
+def drive_tour(config: FloornavConfig, legs: list[Leg], seed: int, max_s: float = 240.0) -> Tour:
+    """Drive ``legs`` in ``config``'s world and map every frame as the daemon does (the
+    learned floor handed to the segmenter twice a second, floor odometry after each
+    frame's map); stops at the end, after ``max_s`` or at a collision."""
     renderer = renderer_from_config(config)
     robot = SimRobot(renderer.world, robot_params(config), seed=seed)
     start = renderer.world.start_pose
@@ -89,12 +123,12 @@ def run_tour(world: str, seed: int, localization: str, *, slip: bool = True) -> 
     errors: list[float] = []
     t = 0.0
     spun = 0.0
-    legs = list(TOURS[world])
+    legs = list(legs)
     last_appearances = -1.0
     cruise = config.steering.cruise_speed_m_s
     turn = config.steering.turn_speed_rad_s
     started = time.perf_counter()
-    while legs and t < 240.0 and robot.collisions == 0:
+    while legs and t < max_s and robot.collisions == 0:
         truth = robot.pose
         leg = legs[0]
         if leg == "spin":
@@ -136,8 +170,30 @@ def run_tour(world: str, seed: int, localization: str, *, slip: bool = True) -> 
         estimate = start.compose(odometry.pose)
         true = robot.pose
         errors.append(math.hypot(estimate.x_m - true.x_m, estimate.y_m - true.y_m))
+    return Tour(
+        renderer,
+        robot,
+        mapper,
+        odometry,
+        start,
+        errors,
+        round(t, 1),
+        not legs,
+        round(time.perf_counter() - started, 1),
+    )
+
+
+def run_tour(world: str, seed: int, localization: str, *, slip: bool = True) -> dict[str, object]:
+    sim: dict[str, object] = {"world_file": world, "seed": seed}
+    if not slip:
+        sim.update(slip_sigma_frac=0.0, wheel_scale_sigma_frac=0.0, encoder_tick_noise=0.0)
+    config = load_config(ROOT / "config.toml", sim=sim, mapping=LOCALIZATION[localization])
+    tour = drive_tour(config, TOURS[world], seed)
+    mapper, errors = tour.mapper, tour.errors
     classes = mapper.grid.classify()
-    scores = map_truth_scores(classes, mapper.grid.world_grid, start, renderer.world).as_dict()
+    scores = map_truth_scores(
+        classes, mapper.grid.world_grid, tour.start, tour.renderer.world
+    ).as_dict()
     ordered = sorted(errors)
     localizer = mapper.localizer
     return {
@@ -145,10 +201,10 @@ def run_tour(world: str, seed: int, localization: str, *, slip: bool = True) -> 
         "seed": seed,
         "localization": localization,
         "slip": slip,
-        "tour_s": round(t, 1),
-        "finished": not legs,
-        "distance_m": round(odometry.distance_m, 2),
-        "collisions": robot.collisions,
+        "tour_s": tour.tour_s,
+        "finished": tour.finished,
+        "distance_m": round(tour.odometry.distance_m, 2),
+        "collisions": tour.robot.collisions,
         "pose_error_m": {
             "p50": round(statistics.median(ordered), 3),
             "p95": round(ordered[round(0.95 * (len(ordered) - 1))], 3),
@@ -163,7 +219,7 @@ def run_tour(world: str, seed: int, localization: str, *, slip: bool = True) -> 
         "floor_steps": None
         if not mapper.floor_odometry
         else {"attempts": mapper.floor_odometry_steps, "applied": mapper.floor_odometry_applied},
-        "wall_s": round(time.perf_counter() - started, 1),
+        "wall_s": tour.wall_s,
     }
 
 
