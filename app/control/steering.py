@@ -116,7 +116,7 @@ def polar_free_range(
     xs = T_world_robot.x_m + np.cos(heading)[:, None] * distances[None, :]
     ys = T_world_robot.y_m + np.sin(heading)[:, None] * distances[None, :]
     rc = grid.cell_of(np.column_stack((xs.ravel(), ys.ravel())))
-    inside = (rc[:, 0] >= 0) & (rc[:, 0] < grid.rows) & (rc[:, 1] >= 0) & (rc[:, 1] < grid.cols)
+    inside = grid.holds(rc)
     hit = np.ones(len(rc), dtype=bool)
     hit[inside] = blocked[rc[inside, 0], rc[inside, 1]]
     # The robot's own disk is never seen by the camera: rays start at its edge.

@@ -117,6 +117,14 @@ class GroundGrid:
         col = np.floor((self.y_max_m - pts[:, 1]) / self.cell_m).astype(np.int64)
         return np.column_stack((row, col))
 
+    def holds(self, rc: NDArray[np.integer]) -> NDArray[np.bool_]:
+        """(N, 2) integer (row, col), as from `cell_of` -> (N,) bool: which lie on the
+        raster."""
+        return np.asarray(
+            (rc[:, 0] >= 0) & (rc[:, 0] < self.rows) & (rc[:, 1] >= 0) & (rc[:, 1] < self.cols),
+            dtype=np.bool_,
+        )
+
 
 def same_geometry(a: GroundGrid, b: GroundGrid, tol_m: float = 1e-6) -> bool:
     """Whether two rasters cover the same cells: equal shapes, and cell size and corner

@@ -101,12 +101,7 @@ def marks_near_truth(
     truth_grid, truth_occ = world.occupancy(map_grid.cell_m)
     near_truth = _dilate(truth_occ == 1)
     rc = truth_grid.cell_of(plan)
-    on_grid = (
-        (rc[:, 0] >= 0)
-        & (rc[:, 0] < truth_grid.rows)
-        & (rc[:, 1] >= 0)
-        & (rc[:, 1] < truth_grid.cols)
-    )
+    on_grid = truth_grid.holds(rc)
     near = np.zeros(rows.size, dtype=bool)
     near[on_grid] = near_truth[rc[on_grid, 0], rc[on_grid, 1]]
     return float(near.mean())
@@ -224,9 +219,7 @@ def _map_classes_at(
     x, y = truth_grid.cell_centers()
     plan_points = np.column_stack((x.ravel(), y.ravel()))
     rc = map_grid.cell_of(T_plan_map.inverse().apply(plan_points))
-    on_map = (
-        (rc[:, 0] >= 0) & (rc[:, 0] < map_grid.rows) & (rc[:, 1] >= 0) & (rc[:, 1] < map_grid.cols)
-    )
+    on_map = map_grid.holds(rc)
     mapped = np.full(len(rc), UNKNOWN, dtype=np.int8)
     mapped[on_map] = classes[rc[on_map, 0], rc[on_map, 1]]
     return mapped.reshape(truth_grid.shape)

@@ -932,12 +932,7 @@ class World:
             t = np.linspace(0.0, 1.0, n)
             pts = np.column_stack((x0 + t * (x1 - x0), y0 + t * (y1 - y0)))
             cells = grid.cell_of(pts)
-            ok = (
-                (cells[:, 0] >= 0)
-                & (cells[:, 0] < grid.rows)
-                & (cells[:, 1] >= 0)
-                & (cells[:, 1] < grid.cols)
-            )
+            ok = grid.holds(cells)
             occ[cells[ok, 0], cells[ok, 1]] = 1
         occ.flags.writeable = False
         self._occupancy_cache[cell_m] = (grid, occ)

@@ -415,3 +415,12 @@ def test_grid_bench_smoke() -> None:
     assert all(isinstance(v, float) and v > 0 for v in ms.values())
     assert float(ms["min"]) <= float(ms["median"]) <= float(ms["max"])
     assert "occupancy grid update" in format_grid_bench(result)
+
+
+def test_a_grid_holds_exactly_its_own_cells() -> None:
+    grid = GroundGrid(2.0, 1.0, 0.5, 4, 3)  # rows 0-3, cols 0-2
+    rc = np.array([[0, 0], [3, 2], [-1, 0], [4, 0], [0, -1], [0, 3], [2, 1]])
+    assert grid.holds(rc).tolist() == [True, True, False, False, False, False, True]
+    # The points of cell_of: the corner (x_max, y_max) is on it, past it is not.
+    points = np.array([[2.0, 1.0], [2.01, 1.0], [0.01, -0.49], [-0.01, 0.0]])
+    assert grid.holds(grid.cell_of(points)).tolist() == [True, False, True, False]
