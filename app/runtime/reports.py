@@ -239,6 +239,7 @@ def report(rt: Runtime) -> dict[str, Any]:
         "premise_stops": counters.premise_stops,
         "steering_decisions": dict(rt.steering_stage.reasons),
         "goals_given_up": rt.mapping.goals_given_up,
+        "frontier_clusters_given_up": rt.mapping.clusters_given_up,
         "commands_sent": counters.commands_sent,
         "send_errors": counters.send_errors,
         "serial": None

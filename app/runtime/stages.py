@@ -337,6 +337,8 @@ class MappingStage:
         self.frontier: FrontierSearch | None = None
         self.goals_given_up = 0
         """Goals given up this run (each map keeps its own, `GroundMapper.given_up`)."""
+        self.clusters_given_up = 0
+        """Of them, the failures that gave up their whole frontier (`GivenUpGoals.add`)."""
         self._goal_since: tuple[tuple[float, float], float] | None = None
         self._frontier_due_s = 0.0
         self._snapshot_due_s = 0.0
@@ -605,10 +607,17 @@ class MappingStage:
         else:
             self._goal_since = None  # patience counts only while exploring
 
-    def _give_up(self, mapper: GroundMapper, xy: tuple[float, float]) -> None:
+    def _give_up(
+        self,
+        mapper: GroundMapper,
+        xy: tuple[float, float],
+        cluster_cells: NDArray[np.int64] | None = None,
+    ) -> bool:
         # Between mapping steps (this loop awaits each one), so the worker is not reading.
-        mapper.given_up.add(xy)
+        whole = mapper.given_up.add(xy, cluster_cells)
         self.goals_given_up += 1
+        self.clusters_given_up += int(whole)
+        return whole
 
     def _track_goal(self, mapper: GroundMapper, search: FrontierSearch, now: float) -> None:
         """Give up on a goal that has stayed (within 0.3 m) the goal for
@@ -634,12 +643,20 @@ class MappingStage:
             self._goal_since = (goal.xy, now)
             return
         if now - self._goal_since[1] > patience_s:
-            self._give_up(mapper, goal.xy)
+            cluster = (
+                search.clusters[goal.cluster_index].cells
+                if 0 <= goal.cluster_index < len(search.clusters)
+                else None
+            )
+            whole = self._give_up(mapper, goal.xy, cluster)
             log.info(
-                "frontier goal (%.2f, %.2f) given up after %.0f s",
+                "frontier goal (%.2f, %.2f) given up after %.0f s%s",
                 goal.xy[0],
                 goal.xy[1],
                 patience_s,
+                f", and its frontier of {len(cluster)} cells (a second failure there)"
+                if whole and cluster is not None
+                else "",
                 extra={"event": "goal_given_up"},
             )
             self._goal_since = None

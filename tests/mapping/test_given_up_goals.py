@@ -48,3 +48,49 @@ def test_given_up_goals_mark_the_union_of_their_disks() -> None:
     assert np.array_equal(given_up.seen, seen)
     assert np.array_equal(given_up.no_probe, no_probe)
     assert len(given_up) == 3 and given_up.points == points
+
+
+def centre(row: int, col: int) -> tuple[float, float]:
+    return (GRID.x_max_m - (row + 0.5) * GRID.cell_m, GRID.y_max_m - (col + 0.5) * GRID.cell_m)
+
+
+def cluster_along_row(row: int, cols: range) -> np.ndarray:
+    return np.array([(row, c) for c in cols], dtype=np.int64)
+
+
+def test_a_second_failure_on_one_frontier_gives_up_the_whole_frontier() -> None:
+    given_up = GivenUpGoals(GRID)
+    frontier = cluster_along_row(10, range(2, 28))  # x 1.95, y 1.25 .. -1.25
+    first, second = centre(10, 5), centre(10, 12)
+    # The first failure stamps its disks only.
+    assert given_up.add(first, frontier) is False
+    assert np.array_equal(given_up.seen, footprint_mask(GRID, first, GIVEN_UP_RADIUS_M))
+    assert given_up.clusters == 0
+    # The second, 0.7 m away on the same frontier (within the 0.8 m of the first):
+    # the whole frontier and what lies within the radii of its cells.
+    assert given_up.add(second, frontier) is True
+    assert given_up.clusters == 1
+    # Exactly the cells within 4 cells (0.4 m) of the frontier's cells; the goals' own
+    # disks lie inside.
+    rows, cols = np.indices(GRID.shape)
+    distance2 = np.min([(rows - 10) ** 2 + (cols - c) ** 2 for c in range(2, 28)], axis=0)
+    assert np.array_equal(given_up.seen, distance2 <= 16)
+    assert given_up.no_probe[10 + 7, 27] and not given_up.no_probe[10 + 9, 27]
+    assert len(given_up) == 2
+
+
+def test_failures_on_frontiers_apart_and_finished_probes_give_up_only_their_disks() -> None:
+    given_up = GivenUpGoals(GRID)
+    near_frontier = cluster_along_row(3, range(0, 10))  # x 2.65, y 1.45 .. 0.55
+    far_frontier = cluster_along_row(25, range(20, 30))  # x 0.45, y -0.55 .. -1.45
+    # A finished edge probe right on the first frontier is no failure.
+    given_up.add(centre(3, 4))
+    assert given_up.add(centre(3, 2), near_frontier) is False
+    # A failure on a frontier 2 m from the first failure.
+    assert given_up.add(centre(25, 25), far_frontier) is False
+    assert given_up.clusters == 0
+    points = [centre(3, 4), centre(3, 2), centre(25, 25)]
+    seen = np.zeros(GRID.shape, bool)
+    for xy in points:
+        seen |= footprint_mask(GRID, xy, GIVEN_UP_RADIUS_M)
+    assert np.array_equal(given_up.seen, seen)
