@@ -55,6 +55,12 @@ class FloorMemoryParams:
         when at least this share of its colours is that appearance's: what parallax
         finds standing are mostly edges, and an edge's pixels include the floor beside
         it, so a minority of floor-coloured pixels says nothing against the floor
+    standing_min_marks : int >= 1, geometric tests that must mark a cell standing (net of
+        the tests that saw floor there) before it joins the `FloorMemory.standing` layer:
+        one test's foot lands wherever its frame's colour floor happened to end (a
+        threshold, a shadow), a real foot is found there again
+    standing_max_marks : int >= standing_min_marks, the count saturates here, so a mark
+        that held for minutes still leaves after a few tests that see floor there
     """
 
     near_m: float = 1.5
@@ -64,6 +70,8 @@ class FloorMemoryParams:
     max_appearances: int = 8
     unlearn_distance: float = 0.10
     unlearn_share: float = 0.5
+    standing_min_marks: int = 2
+    standing_max_marks: int = 3
 
     def __post_init__(self) -> None:
         if not (self.near_m > 0 and 0 < self.colour_rate <= 1):
@@ -74,6 +82,10 @@ class FloorMemoryParams:
             raise ValueError("FloorMemoryParams: distances must be > 0")
         if self.min_cells < 1 or self.max_appearances < 1:
             raise ValueError("FloorMemoryParams: min_cells and max_appearances must be >= 1")
+        if not 1 <= self.standing_min_marks <= self.standing_max_marks <= 255:
+            raise ValueError(
+                "FloorMemoryParams: need 1 <= standing_min_marks <= standing_max_marks <= 255"
+            )
 
 
 @numba.njit(cache=True, nogil=True)
@@ -158,8 +170,11 @@ class FloorMemory:
         n = world_grid.rows * world_grid.cols
         self.confirmed = np.zeros(world_grid.shape, dtype=np.uint8)
         self.standing = np.zeros(world_grid.shape, dtype=np.uint8)
-        """1 where parallax last saw something standing (not kept in map files): the
-        frontier search does not probe those edges again."""
+        """1 where geometry saw something standing, in at least
+        `FloorMemoryParams.standing_min_marks` more tests than saw floor there (not kept
+        in map files): the frontier search does not probe those edges again."""
+        self.standing_marks = np.zeros(world_grid.shape, dtype=np.uint8)
+        """Tests that marked the cell standing, less those that saw floor there."""
         self._colour = np.zeros((n, 3), dtype=np.float32)
         self._sightings = np.zeros(n, dtype=np.uint16)
         self._appearance_lab = np.zeros((0, 3), dtype=np.float32)
@@ -215,6 +230,7 @@ class FloorMemory:
         new = cells[flat[cells] == 0]
         flat[new] = 1
         self.standing.reshape(-1)[cells] = 0
+        self.standing_marks.reshape(-1)[cells] = 0
         seen = new[self._sightings[new] > 0]
         if seen.size:
             self._learn(bgr_to_scaled_lab(self._colour[seen]))
@@ -252,7 +268,10 @@ class FloorMemory:
         if cells.size == 0:
             return
         self.confirmed.reshape(-1)[cells] = 0
-        self.standing.reshape(-1)[cells] = 1
+        marks = self.standing_marks.reshape(-1)
+        marks[cells] = np.minimum(marks[cells] + 1, self.params.standing_max_marks)
+        sure = cells[marks[cells] >= self.params.standing_min_marks]
+        self.standing.reshape(-1)[sure] = 1
         if self._appearance_lab.shape[0] == 0:
             return
         if standing_bgr is None:
@@ -273,6 +292,20 @@ class FloorMemory:
         self.unlearned += int(np.count_nonzero(~keep & (votes > 0)))
         self._appearance_lab = self._appearance_lab[keep]
         self._appearance_cells = self._appearance_cells[keep]
+
+    def see_floor(self, cells: NDArray[np.int64]) -> None:
+        """A geometric test saw floor, not a foot, on these cells: each loses one mark,
+        and leaves the standing layer below `FloorMemoryParams.standing_min_marks`."""
+        cells = np.unique(cells[cells >= 0])
+        if cells.size == 0:
+            return
+        marks = self.standing_marks.reshape(-1)
+        marked = cells[marks[cells] > 0]
+        if marked.size == 0:
+            return
+        marks[marked] -= 1
+        gone = marked[marks[marked] < self.params.standing_min_marks]
+        self.standing.reshape(-1)[gone] = 0
 
     def correct_patch(self, patch: NDArray[np.uint8], index: NDArray[np.int64]) -> int:
         """In place: patch cells the colour method calls not-floor on confirmed floor
@@ -345,6 +378,7 @@ class FloorMemory:
             raise ValueError("floor appearances: every cell count must be > 0")
         self.confirmed[...] = state.confirmed != 0
         self.standing.fill(0)
+        self.standing_marks.fill(0)
         self._appearance_lab = table[:, :3].copy()
         self._appearance_cells = table[:, 3].astype(np.float64)
         self._colour.fill(0.0)
@@ -353,6 +387,7 @@ class FloorMemory:
     def reset(self) -> None:
         self.confirmed.fill(0)
         self.standing.fill(0)
+        self.standing_marks.fill(0)
         self._colour.fill(0.0)
         self._sightings.fill(0)
         self._appearance_lab = np.zeros((0, 3), dtype=np.float32)

@@ -362,6 +362,11 @@ the probe stood within the inflation radius plus two cells of its edge, and an e
 seen from there for the goal's patience has had its look."""
 
 
+def _grown_by_one_cell(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
+    """``mask`` and its 8 neighbours (a foot found a cell off is the same foot)."""
+    return np.asarray(cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
+
+
 def blind_zone_cells(birdseye: BirdseyeMap, half_width_m: float) -> NDArray[np.bool_]:
     """Unseen bird's-eye cells straight ahead of the robot (|y| <= half_width_m) that lie
     closer than the nearest cell the camera sees in that strip."""
@@ -612,9 +617,20 @@ class GroundMapper:
                 # What parallax found flat is known floor from now on.
                 flat = birdseye_floor_patch(outcome.flat, self.birdseye) == FLOOR
                 memory.confirm_cells(index_then[flat])
+            feet = (
+                np.zeros(patch.shape, dtype=bool)
+                if outcome.feet is None
+                else birdseye_floor_patch(outcome.feet, self.birdseye) == FLOOR
+            )
             if outcome.feet is not None:
-                feet = birdseye_floor_patch(outcome.feet, self.birdseye) == FLOOR
                 memory.mark_standing(index_then[feet], outcome.standing_bgr)
+            if outcome.job.walls:
+                # The walls test looked along every column: near floor it saw, a cell
+                # clear of its own feet, holds no foot (a threshold marked while the
+                # floor beyond it was not yet known loses its mark once it is).
+                seen_floor = birdseye_floor_patch(outcome.job.floor_mask, self.birdseye) == FLOOR
+                clear = seen_floor & self._near_cells & ~_grown_by_one_cell(feet)
+                memory.see_floor(index_then[clear])
             if standing_here is not None:
                 patch[standing_here] = NOT_FLOOR
         if standing_px is not None and image is not None:

@@ -108,11 +108,25 @@ def test_the_probe_crosses_the_seam_where_nothing_was_seen_standing() -> None:
 
 
 def test_floor_memory_remembers_what_stood_until_it_is_floor_again() -> None:
-    memory = FloorMemory(GRID)
+    memory = FloorMemory(GRID)  # a cell stands from 2 net marks; marks saturate at 3
     cells = np.array([5, 6, 7], dtype=np.int64)
+
+    def layer() -> list[int]:
+        return [int(v) for v in memory.standing.reshape(-1)[cells]]
+
     memory.mark_standing(cells)
-    assert memory.standing.reshape(-1)[cells].tolist() == [1, 1, 1]
+    assert layer() == [0, 0, 0]  # one test's foot is not enough
+    memory.mark_standing(cells)
+    assert layer() == [1, 1, 1]
     memory.confirm_cells(np.array([6], dtype=np.int64))
-    assert memory.standing.reshape(-1)[cells].tolist() == [1, 0, 1]
+    assert layer() == [1, 0, 1]
+    memory.mark_standing(np.array([5], dtype=np.int64))  # 5 at 3 marks, 7 at 2
+    memory.see_floor(np.array([5, 7, 7, 40], dtype=np.int64))  # one test, each cell once
+    assert layer() == [1, 0, 0]
+    assert memory.standing_marks.reshape(-1)[cells].tolist() == [2, 0, 1]
+    memory.see_floor(np.array([5, -1], dtype=np.int64))
+    assert layer() == [0, 0, 0] and memory.standing_marks.reshape(-1)[40] == 0
+    memory.mark_standing(cells)
+    memory.mark_standing(cells)
     memory.reset()
-    assert not memory.standing.any()
+    assert not memory.standing.any() and not memory.standing_marks.any()

@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from app.config import CameraConfig, MappingConfig
 from app.mapping.calibration import apply_homography, homography_from_point_pairs
 from app.mapping.frames import FLOOR, NOT_FLOOR, Pose2D
-from app.mapping.ground_map import GroundMapper
+from app.mapping.ground_map import WALLS_PERIOD_S, GroundMapper
 from app.mapping.occupancy import FREE, OCCUPIED, UNKNOWN, OccupancyGrid
 
 from .test_calibration import HEIGHT, WIDTH, camera_homography
@@ -261,15 +261,17 @@ def test_a_floor_coloured_box_the_mask_calls_floor_is_an_obstacle_by_the_horizon
     red, blue = frame.image[..., 2].astype(int), frame.image[..., 0].astype(int)
     mask = frame.floor_mask | (red - blue > 30)  # the brown box called floor; walls grey
     radius, reach = mapper.mapping.robot_radius_m, mapper.mapping.max_range_m
-    found = mapper.update(mask, pose, 0.0, frame.image)
-    missed = plain.update(mask, pose, 0.0, frame.image)
+    # Two frames: a cell joins the standing layer once two tests marked it.
+    for now_s in (0.0, WALLS_PERIOD_S):
+        found = mapper.update(mask, pose, now_s, frame.image)
+        missed = plain.update(mask, pose, now_s, frame.image)
     clear_found = clearance_ahead_m(found.patch, mapper.birdseye.grid, radius, reach)
     clear_missed = clearance_ahead_m(missed.patch, plain.birdseye.grid, radius, reach)
     # The box's near face is 0.7 - 0.175 m from the robot's centre (its half depth).
     expected = distance - 0.175 - radius
     assert clear_found == pytest.approx(expected, abs=0.06)
     assert clear_missed > expected + 1.0
-    assert mapper.standing_frames == 1 and plain.standing_frames == 0
+    assert mapper.standing_frames == 2 and plain.standing_frames == 0
     # The floor memory marks what stands where it stands (the box, and the brown things
     # beyond it the mask also called floor), not along the rays their faces project to
     # through the floor homography, up to the camera's range behind them.
@@ -293,8 +295,11 @@ def test_a_plain_walls_foot_is_remembered_standing_and_kept_from_edge_probes() -
     pose = Pose2D(1.5, 3.0, math.pi)  # facing the wall at x = 0
     frame = renderer.render(pose)  # type: ignore[attr-defined]
     mask = segmenter.segment(frame.image).floor_mask  # type: ignore[attr-defined]
-    mapper.update(mask, pose, 0.0, frame.image)
-    plain.update(mask, pose, 0.0, frame.image)
+    # Two frames a walls test apart: a cell joins the standing layer once two tests
+    # marked it.
+    for now_s in (0.0, WALLS_PERIOD_S):
+        mapper.update(mask, pose, now_s, frame.image)
+        plain.update(mask, pose, now_s, frame.image)
     assert not (plain.memory.standing != 0).any()
     x, y = mapper.memory.world_grid.cell_centers()
     marked = mapper.memory.standing != 0
@@ -365,3 +370,35 @@ def test_a_floor_finished_panel_parallax_saw_standing_ends_the_floor_at_its_foot
     for distance, clearance in zip((0.50, 0.49), clearances[1:], strict=True):
         assert clearance == pytest.approx(distance / math.cos(0.26) - radius, abs=0.08)
     assert clearances[0] > clearances[1] + 0.3  # before any test: the floor ran on
+
+
+def test_a_foot_marked_where_the_floor_ended_too_soon_leaves_once_floor_is_seen_past_it() -> None:
+    """A plain view (a threshold, then a plain far wall): while the mask ends the floor
+    0.8 m ahead, the walls test puts the foot there; once the floor is seen to 1.3 m
+    (its material learned), tests that see floor on the old foot take its marks away.
+    A mark needs two tests to stand and saturates at three."""
+    mapper, _, _ = sim_mapper(standing_by_horizon=True, parallax_floor=False)
+    pose = Pose2D(0.0, 0.0, 0.0)
+    image = np.full((480, 640, 3), 120, np.uint8)
+    x, _ = mapper.memory.world_grid.cell_centers()
+
+    def floor_to(distance_m: float) -> np.ndarray:
+        row = mapper.calibration.ground_to_image(np.array([[distance_m, 0.0]]))[0, 1]
+        mask = np.zeros(image.shape[:2], bool)
+        mask[int(row) :] = True
+        return mask
+
+    def standing_near(distance_m: float) -> int:
+        return int(((mapper.memory.standing != 0) & (np.abs(x - distance_m) < 0.1)).sum())
+
+    seen = []
+    for k, distance_m in enumerate((0.8, 0.8, 0.8, 1.3, 1.3)):
+        mapper.update(floor_to(distance_m), pose, k * WALLS_PERIOD_S, image)
+        seen.append((standing_near(0.8) > 0, standing_near(1.3) > 0))
+    assert seen == [
+        (False, False),  # one test's foot
+        (True, False),
+        (True, False),  # three marks
+        (True, False),  # floor seen on it once: two left; the new foot has one
+        (False, True),
+    ]
