@@ -28,7 +28,16 @@ FLOORNAV = ROOT / ".venv" / "bin" / "floornav"
 PYTHON = ROOT / ".venv" / "bin" / "python"
 
 
-def run_one(world: str, seed: int, duration_s: float) -> Path:
+def build() -> str:
+    """The commit measured ("+dirty" with uncommitted changes to tracked files)."""
+    head = subprocess.run(
+        ["git", "rev-parse", "--short", "HEAD"], cwd=ROOT, capture_output=True, text=True
+    ).stdout.strip()
+    dirty = subprocess.run(["git", "diff", "--quiet", "HEAD"], cwd=ROOT).returncode != 0
+    return head + ("+dirty" if dirty else "")
+
+
+def run_one(world: str, seed: int, duration_s: float, commit: str) -> Path:
     report = MEASUREMENTS / f"explore-{world}-s{seed}.json"
     with tempfile.TemporaryDirectory() as tmp:
         map_path = Path(tmp) / "map.npz"
@@ -50,6 +59,10 @@ def run_one(world: str, seed: int, duration_s: float) -> Path:
         # Ports of their own: a daemon or test elsewhere on the machine keeps its own.
         env = {**os.environ, "FLOORNAV_WEB__PORT": "18080", "FLOORNAV_VISER__PORT": "18081"}
         subprocess.run(command, check=True, cwd=ROOT, stdout=subprocess.DEVNULL, env=env)
+        # The table may mix builds (`--seeds`, `--worlds`): each report says its own.
+        measured = json.loads(report.read_text())
+        measured["build"] = commit
+        report.write_text(json.dumps(measured, indent=2) + "\n")
         PICTURES.mkdir(parents=True, exist_ok=True)
         subprocess.run(
             [
@@ -87,13 +100,14 @@ def table(command: str) -> str:
         "one cell of a real wall or box; *probe-able edges*: of the cells the map calls",
         "occupied, the share the frontier search may still probe (near 0, exploration",
         "ends at the first edge the robot cannot prove floor); '-' for older reports.",
+        "*Build*: the commit each run measured.",
         "",
         f"Command: `{command}`",
         "",
-        "| world | seed | s | reachable coverage | coverage | time to 50 % / 90 % s | "
+        "| build | world | seed | s | reachable coverage | coverage | time to 50 % / 90 % s | "
         "final state | home m | collisions | occupied near truth | standing near truth | "
         "probe-able edges | map IoU | pose error p95 m | latency p95 ms |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for path in sorted(MEASUREMENTS.glob("explore-*.json")):
         r = json.loads(path.read_text())
@@ -105,6 +119,7 @@ def table(command: str) -> str:
             "| "
             + " | ".join(
                 [
+                    cell(r.get("build")),
                     cell(r.get("world")),
                     cell(r.get("seed")),
                     f"{r['duration_s']:.0f}",
@@ -137,9 +152,10 @@ def main() -> int:
     MEASUREMENTS.mkdir(parents=True, exist_ok=True)
     command = "scripts/measure_exploration.py " + " ".join(sys.argv[1:])
     if not args.table_only:
+        commit = build()
         for world in args.worlds:
             for seed in args.seeds:
-                run_one(world, seed, args.duration_s)
+                run_one(world, seed, args.duration_s, commit)
     (ROOT / "docs" / "exploration.md").write_text(table(command.strip()))
     return 0
 
