@@ -467,6 +467,7 @@ def find_frontiers(
     *,
     robot_heading_rad: float | None = None,
     probe_cells: NDArray[np.bool_] | None = None,
+    no_frontier: NDArray[np.bool_] | None = None,
 ) -> FrontierSearch:
     """Frontier clusters of a classified grid and the goal to explore next.
 
@@ -480,6 +481,9 @@ def find_frontiers(
     robot_heading_rad : the robot's heading in the world frame, for the turn penalty.
     probe_cells : (rows, cols) bool, occupied cells whose edge may be probed when no
         frontier is reachable (module docstring); None: no probes.
+    no_frontier : (rows, cols) bool, cells that make no frontier (around goals given up).
+        They stay what they are: counting them as free floor instead put a new frontier
+        on their rim, a step further into the unknown, and the next goal there.
 
     Returns
     -------
@@ -496,7 +500,7 @@ def find_frontiers(
     occupied = cells == OCCUPIED
     known = cells.copy()
     known[footprint & ~occupied] = FREE
-    excluded = footprint
+    excluded = footprint if no_frontier is None else footprint | no_frontier
     if params.exclude_radius_m > params.robot_radius_m:
         excluded = footprint | footprint_mask(grid, robot_xy, params.exclude_radius_m)
     frontier = frontier_mask(known, adjacency=params.frontier_adjacency, exclude=excluded)

@@ -27,9 +27,7 @@ from app.mapping.frontiers import (
 )
 from app.mapping.ipm import BirdseyeMap, birdseye_floor_patch, build_birdseye_map
 from app.mapping.occupancy import (
-    FREE,
     OCCUPIED,
-    UNKNOWN,
     OccupancyGrid,
     OccupancyParams,
     SavedMap,
@@ -380,8 +378,8 @@ def blind_zone_cells(birdseye: BirdseyeMap, half_width_m: float) -> NDArray[np.b
 
 
 GIVEN_UP_RADIUS_M = 0.4
-"""Unknown cells this close to a given-up goal count as seen (floor under where the
-robot started, a spot no pose shows): they make no frontier."""
+"""Cells this close to a given-up goal make no frontier (floor under where the robot
+started, a spot no pose shows)."""
 
 
 class GivenUpGoals:
@@ -396,8 +394,8 @@ class GivenUpGoals:
     def __init__(self, grid: GroundGrid) -> None:
         self.grid = grid
         self.points: list[tuple[float, float]] = []
-        self.seen = np.zeros(grid.shape, dtype=bool)
-        """Cells within `GIVEN_UP_RADIUS_M` of a given-up goal or cluster."""
+        self.no_frontier = np.zeros(grid.shape, dtype=bool)
+        """Cells within `GIVEN_UP_RADIUS_M` of a given-up goal or cluster: no frontier."""
         self.no_probe = np.zeros(grid.shape, dtype=bool)
         """Cells within `PROBE_GIVEN_UP_RADIUS_M` of one: their edges are not probed."""
         self.failed = np.zeros(grid.shape, dtype=bool)
@@ -420,11 +418,11 @@ class GivenUpGoals:
                 cluster = np.zeros(self.grid.shape, dtype=bool)
                 cluster[rows, cols] = True
                 cell_m = self.grid.cell_m
-                self.seen |= inflate_obstacles(cluster, GIVEN_UP_RADIUS_M / cell_m)
+                self.no_frontier |= inflate_obstacles(cluster, GIVEN_UP_RADIUS_M / cell_m)
                 self.no_probe |= inflate_obstacles(cluster, PROBE_GIVEN_UP_RADIUS_M / cell_m)
                 self.clusters += 1
         self.points.append(xy)
-        stamp_disk(self.seen, self.grid, xy, GIVEN_UP_RADIUS_M)
+        stamp_disk(self.no_frontier, self.grid, xy, GIVEN_UP_RADIUS_M)
         stamp_disk(self.no_probe, self.grid, xy, PROBE_GIVEN_UP_RADIUS_M)
         return whole
 
@@ -956,21 +954,20 @@ class GroundMapper:
         return np.asarray(warped > 0, dtype=np.bool_)
 
     def frontiers(self, T_world_robot: Pose2D) -> FrontierSearch:
-        """Frontiers and the goal, with the goals in `given_up` treated as seen."""
+        """Frontiers and the goal, with no frontier near the goals in `given_up`."""
         return search_frontiers(self.frontier_inputs(T_world_robot))
 
     def frontier_inputs(self, T_world_robot: Pose2D) -> FrontierInputs:
         """What a frontier search reads, copied (~1 ms; in the thread that runs
         `update`): the search itself (`search_frontiers`) may then run in any thread."""
-        cells = self.grid.classify()
-        cells[self.given_up.seen & (cells == UNKNOWN)] = FREE
         probe_cells = self.frontier_probe_cells() if self.mapping.frontier_probe_edges else None
         return FrontierInputs(
-            cells,
+            self.grid.classify(),
             self.grid.world_grid,
             (T_world_robot.x_m, T_world_robot.y_m),
             self.frontier_params,
             probe_cells,
+            self.given_up.no_frontier.copy(),
         )
 
     def frontier_probe_cells(self) -> NDArray[np.bool_]:
@@ -1004,12 +1001,18 @@ class FrontierInputs(NamedTuple):
     robot_xy: tuple[float, float]
     params: FrontierParams
     probe_cells: NDArray[np.bool_] | None
+    no_frontier: NDArray[np.bool_] | None = None
 
 
 def search_frontiers(inputs: FrontierInputs) -> FrontierSearch:
     """`find_frontiers` on copied inputs (pure; any thread)."""
     return find_frontiers(
-        inputs.cells, inputs.grid, inputs.robot_xy, inputs.params, probe_cells=inputs.probe_cells
+        inputs.cells,
+        inputs.grid,
+        inputs.robot_xy,
+        inputs.params,
+        probe_cells=inputs.probe_cells,
+        no_frontier=inputs.no_frontier,
     )
 
 

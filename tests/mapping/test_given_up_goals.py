@@ -6,12 +6,13 @@ from __future__ import annotations
 import numpy as np
 
 from app.mapping.frames import GroundGrid
-from app.mapping.frontiers import footprint_mask, stamp_disk
+from app.mapping.frontiers import find_frontiers, footprint_mask, stamp_disk
 from app.mapping.ground_map import (
     GIVEN_UP_RADIUS_M,
     PROBE_GIVEN_UP_RADIUS_M,
     GivenUpGoals,
 )
+from app.mapping.occupancy import FREE, UNKNOWN
 
 GRID = GroundGrid(3.0, 1.5, 0.1, 30, 30)  # x 0..3, y -1.5..1.5
 
@@ -45,7 +46,7 @@ def test_given_up_goals_mark_the_union_of_their_disks() -> None:
     for xy in points:
         seen |= footprint_mask(GRID, xy, GIVEN_UP_RADIUS_M)
         no_probe |= footprint_mask(GRID, xy, PROBE_GIVEN_UP_RADIUS_M)
-    assert np.array_equal(given_up.seen, seen)
+    assert np.array_equal(given_up.no_frontier, seen)
     assert np.array_equal(given_up.no_probe, no_probe)
     assert len(given_up) == 3 and given_up.points == points
 
@@ -64,7 +65,7 @@ def test_a_second_failure_on_one_frontier_gives_up_the_whole_frontier() -> None:
     first, second = centre(10, 5), centre(10, 12)
     # The first failure stamps its disks only.
     assert given_up.add(first, frontier) is False
-    assert np.array_equal(given_up.seen, footprint_mask(GRID, first, GIVEN_UP_RADIUS_M))
+    assert np.array_equal(given_up.no_frontier, footprint_mask(GRID, first, GIVEN_UP_RADIUS_M))
     assert given_up.clusters == 0
     # The second, 0.7 m away on the same frontier (within the 0.8 m of the first):
     # the whole frontier and what lies within the radii of its cells.
@@ -74,7 +75,7 @@ def test_a_second_failure_on_one_frontier_gives_up_the_whole_frontier() -> None:
     # disks lie inside.
     rows, cols = np.indices(GRID.shape)
     distance2 = np.min([(rows - 10) ** 2 + (cols - c) ** 2 for c in range(2, 28)], axis=0)
-    assert np.array_equal(given_up.seen, distance2 <= 16)
+    assert np.array_equal(given_up.no_frontier, distance2 <= 16)
     assert given_up.no_probe[10 + 7, 27] and not given_up.no_probe[10 + 9, 27]
     assert len(given_up) == 2
 
@@ -93,4 +94,24 @@ def test_failures_on_frontiers_apart_and_finished_probes_give_up_only_their_disk
     seen = np.zeros(GRID.shape, bool)
     for xy in points:
         seen |= footprint_mask(GRID, xy, GIVEN_UP_RADIUS_M)
-    assert np.array_equal(given_up.seen, seen)
+    assert np.array_equal(given_up.no_frontier, seen)
+
+
+def test_a_given_up_goal_makes_no_frontier_nearby_and_none_on_its_rim() -> None:
+    """Floor up to x = 1.5 m, unknown beyond; the goal given up on the frontier's middle:
+    the frontier loses the cells within 0.4 m of it and gains none inside the unknown
+    (counting the disk as floor put a frontier on its rim, 0.4 m further in)."""
+    cells = np.full(GRID.shape, UNKNOWN, np.int8)
+    cells[15:] = FREE  # rows 15-29: x < 1.5 m
+    given_up = GivenUpGoals(GRID)
+    x, y = centre(15, 15)
+    given_up.add((x, y + 0.02))  # off the cells' centres: no distance is exactly 0.4 m
+    found = find_frontiers(cells, GRID, (0.5, 0.0), no_frontier=given_up.no_frontier)
+    frontier = np.zeros(GRID.shape, bool)
+    for cluster in found.clusters:
+        frontier[cluster.cells[:, 0], cluster.cells[:, 1]] = True
+    expected = np.zeros(GRID.shape, bool)
+    expected[15] = True
+    expected[15, 11:19] = False  # cells 0.38 m (col 11) to 0.32 m (col 18) away
+    assert np.array_equal(frontier, expected)
+    assert found.goal is not None and expected[found.goal.cell]
