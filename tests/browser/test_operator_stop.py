@@ -30,6 +30,7 @@ from app.perception.pipeline import FloorResult, FloorSegmenter
 from app.runtime import CommandRefusedError
 from tests.browser.conftest import TOKEN, LiveServer, run_async, wait_for, wait_js
 from tests.browser.shots import MAX_BYTES, save_screenshot
+from tests.stall_witness import shared_witness
 
 pytestmark = pytest.mark.browser
 
@@ -137,29 +138,44 @@ class StopTiming:
         daemon answers for (None: it never did; the Uno stopped on its own)
     uno_gap_ms : the longest silence between the simulated Uno's telemetry frames from
         just before the action until the stop
+    machine_stalled_ms : how long the whole machine did not run between the action and
+        PWM 0/0 (`tests.stall_witness`)
+    host_stalled_ms : the same, between the action and the stop on the wire
     """
 
     what: str
     total_ms: float
     host_ms: float | None
     uno_gap_ms: float
+    machine_stalled_ms: float = 0.0
+    host_stalled_ms: float = 0.0
 
     def check(self) -> None:
-        """The stop must beat `STOP_BUDGET_MS` end to end. On a loaded 2-core machine the
-        simulated Uno's process can be starved for a few hundred ms (seen in CI: STOP on
-        the wire at +43 ms, PWM 0/0 at +307 ms, the child silent meanwhile); then the
-        daemon's part, press to frame on the wire, must beat the budget instead, and the
-        excess must be the child's silence, not the daemon's."""
+        """The stop must beat `STOP_BUDGET_MS` end to end, less the time the whole
+        machine did not run (the CI VM's host can stop it outright; nothing the daemon
+        does can beat that). On a loaded 2-core machine the simulated Uno's process can
+        also be starved for a few hundred ms (seen in CI: STOP on the wire at +43 ms, PWM
+        0/0 at +307 ms, the child silent meanwhile); then the daemon's part, press to
+        frame on the wire less the machine's stalls, must beat the budget instead, and
+        the excess must be the child's silence, not the daemon's."""
         if self.total_ms <= STOP_BUDGET_MS:
             return
         assert self.host_ms is not None, (
             f"{self.what}: {self.total_ms:.1f} ms > {STOP_BUDGET_MS} ms and the daemon never "
             "wrote a zero frame"
         )
-        assert self.host_ms <= STOP_BUDGET_MS, (
-            f"{self.what}: the daemon put the stop on the wire after {self.host_ms:.1f} ms "
-            f"> {STOP_BUDGET_MS} ms"
+        daemon_ms = self.host_ms - self.host_stalled_ms
+        assert daemon_ms <= STOP_BUDGET_MS, (
+            f"{self.what}: the daemon put the stop on the wire after {self.host_ms:.1f} ms, "
+            f"{daemon_ms:.1f} ms of it with the machine running > {STOP_BUDGET_MS} ms"
         )
+        if self.total_ms - self.machine_stalled_ms <= STOP_BUDGET_MS:
+            print(
+                f"{self.what}: over the budget end to end because the whole machine stalled "
+                f"for {self.machine_stalled_ms:.0f} ms (the daemon's part took "
+                f"{daemon_ms:.1f} ms of running time)"
+            )
+            return
         assert self.uno_gap_ms >= UNO_STARVED_GAP_MS, (
             f"{self.what}: {self.total_ms:.1f} ms > {STOP_BUDGET_MS} ms although the "
             f"simulated Uno was running (longest telemetry gap {self.uno_gap_ms:.0f} ms); "
@@ -200,9 +216,11 @@ def time_to_zero(
             stopped.set()
 
     vars(plant)["apply_pwm"] = traced_apply_pwm
+    witness = shared_witness()
     try:
         with StopTrace(server) as trace:
             start = time.time()
+            start_mono = time.monotonic()
             act()
             stopped.wait(3.0)
     finally:
@@ -225,11 +243,20 @@ def time_to_zero(
     over = " (over the 100 ms target)" if latency_ms > STOP_TARGET_MS else ""
     print(f"\n{what}: PWM 0/0 after {latency_ms:.1f} ms{over} ({steps} ms)")
     wire = marks.get("zero frame on the wire")
+    host_ms = None if wire is None else (wire - start) * 1000
+    stalled_ms = witness.stalled_s(start_mono, start_mono + latency_ms / 1000) * 1000
+    host_stalled_ms = 0.0
+    if host_ms is not None:
+        host_stalled_ms = witness.stalled_s(start_mono, start_mono + host_ms / 1000) * 1000
+    if stalled_ms:
+        print(f"{what}: the whole machine stalled for {stalled_ms:.0f} ms meanwhile")
     return StopTiming(
         what,
         latency_ms,
-        None if wire is None else (wire - start) * 1000,
+        host_ms,
         longest_gap_ms(trace.telemetry_at, start, zero_at[0]),
+        stalled_ms,
+        host_stalled_ms,
     )
 
 
