@@ -106,8 +106,9 @@ def table(command: str) -> str:
         "",
         "| build | world | seed | s | reachable coverage | coverage | time to 50 % / 90 % s | "
         "final state | home m | collisions | occupied near truth | standing near truth | "
-        "probe-able edges | map IoU | pose error p95 m | latency p95 ms |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "probe-able edges | goals given up (whole frontiers) | map IoU | pose error p95 m | "
+        "latency p95 ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for path in sorted(MEASUREMENTS.glob("explore-*.json")):
         r = json.loads(path.read_text())
@@ -132,6 +133,8 @@ def table(command: str) -> str:
                     cell(truth.get("occupied_near_truth")),
                     cell(memory.get("standing_near_truth")),
                     cell(memory.get("probe_edge_share")),
+                    f"{cell(r.get('goals_given_up'))} "
+                    f"({cell(r.get('frontier_clusters_given_up'))})",
                     cell(truth.get("map_iou")),
                     cell(pose.get("p95")),
                     cell((r.get("latency_ms") or {}).get("p95"), 1),
