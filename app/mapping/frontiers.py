@@ -502,7 +502,7 @@ def find_frontiers(
     known[footprint & ~occupied] = FREE
     excluded = footprint if no_frontier is None else footprint | no_frontier
     if params.exclude_radius_m > params.robot_radius_m:
-        excluded = footprint | footprint_mask(grid, robot_xy, params.exclude_radius_m)
+        excluded = excluded | footprint_mask(grid, robot_xy, params.exclude_radius_m)
     frontier = frontier_mask(known, adjacency=params.frontier_adjacency, exclude=excluded)
     traversable, weight = _traversable(known == FREE, occupied, footprint, cell_m, params)
 

@@ -6,7 +6,7 @@ from __future__ import annotations
 import numpy as np
 
 from app.mapping.frames import GroundGrid
-from app.mapping.frontiers import find_frontiers, footprint_mask, stamp_disk
+from app.mapping.frontiers import FrontierParams, find_frontiers, footprint_mask, stamp_disk
 from app.mapping.ground_map import (
     GIVEN_UP_RADIUS_M,
     PROBE_GIVEN_UP_RADIUS_M,
@@ -106,7 +106,9 @@ def test_a_given_up_goal_makes_no_frontier_nearby_and_none_on_its_rim() -> None:
     given_up = GivenUpGoals(GRID)
     x, y = centre(15, 15)
     given_up.add((x, y + 0.02))  # off the cells' centres: no distance is exactly 0.4 m
-    found = find_frontiers(cells, GRID, (0.5, 0.0), no_frontier=given_up.no_frontier)
+    # As shipped: no frontier within 0.5 m of the robot either (it is 1 m from this one).
+    params = FrontierParams(exclude_radius_m=0.5)
+    found = find_frontiers(cells, GRID, (0.5, 0.0), params, no_frontier=given_up.no_frontier)
     frontier = np.zeros(GRID.shape, bool)
     for cluster in found.clusters:
         frontier[cluster.cells[:, 0], cluster.cells[:, 1]] = True
