@@ -98,7 +98,13 @@ class StallWitness:
 
     def stalled_s(self, start_s: float, end_s: float) -> float:
         """How long the machine did not run between ``start_s`` and ``end_s``."""
-        return sum(b - a for a, b in self.settled_gaps(start_s, end_s))
+        return stalled_within(self.settled_gaps(start_s, end_s), start_s, end_s)
+
+
+def stalled_within(gaps: list[tuple[float, float]], start_s: float, end_s: float) -> float:
+    """Seconds of ``gaps`` (`StallWitness.gaps`) that lie between ``start_s`` and
+    ``end_s``."""
+    return sum(max(0.0, min(b, end_s) - max(a, start_s)) for a, b in gaps)
 
 
 _shared: StallWitness | None = None

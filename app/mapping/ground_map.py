@@ -615,19 +615,18 @@ class GroundMapper:
                 # What parallax found flat is known floor from now on.
                 flat = birdseye_floor_patch(outcome.flat, self.birdseye) == FLOOR
                 memory.confirm_cells(index_then[flat])
-            feet = (
-                np.zeros(patch.shape, dtype=bool)
-                if outcome.feet is None
-                else birdseye_floor_patch(outcome.feet, self.birdseye) == FLOOR
-            )
+            feet = None
             if outcome.feet is not None:
+                feet = birdseye_floor_patch(outcome.feet, self.birdseye) == FLOOR
                 memory.mark_standing(index_then[feet], outcome.standing_bgr)
             if outcome.job.walls:
                 # The walls test looked along every column: near floor it saw, a cell
                 # clear of its own feet, holds no foot (a threshold marked while the
                 # floor beyond it was not yet known loses its mark once it is).
                 seen_floor = birdseye_floor_patch(outcome.job.floor_mask, self.birdseye) == FLOOR
-                clear = seen_floor & self._near_cells & ~_grown_by_one_cell(feet)
+                clear = seen_floor & self._near_cells
+                if feet is not None:
+                    clear &= ~_grown_by_one_cell(feet)
                 memory.see_floor(index_then[clear])
             if standing_here is not None:
                 patch[standing_here] = NOT_FLOOR

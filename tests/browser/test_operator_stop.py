@@ -30,7 +30,7 @@ from app.perception.pipeline import FloorResult, FloorSegmenter
 from app.runtime import CommandRefusedError
 from tests.browser.conftest import TOKEN, LiveServer, run_async, wait_for, wait_js
 from tests.browser.shots import MAX_BYTES, save_screenshot
-from tests.stall_witness import shared_witness
+from tests.stall_witness import shared_witness, stalled_within
 
 pytestmark = pytest.mark.browser
 
@@ -244,10 +244,12 @@ def time_to_zero(
     print(f"\n{what}: PWM 0/0 after {latency_ms:.1f} ms{over} ({steps} ms)")
     wire = marks.get("zero frame on the wire")
     host_ms = None if wire is None else (wire - start) * 1000
-    stalled_ms = witness.stalled_s(start_mono, start_mono + latency_ms / 1000) * 1000
+    end_mono = start_mono + latency_ms / 1000
+    gaps = witness.settled_gaps(start_mono, end_mono)  # one wait for the witness
+    stalled_ms = stalled_within(gaps, start_mono, end_mono) * 1000
     host_stalled_ms = 0.0
     if host_ms is not None:
-        host_stalled_ms = witness.stalled_s(start_mono, start_mono + host_ms / 1000) * 1000
+        host_stalled_ms = stalled_within(gaps, start_mono, start_mono + host_ms / 1000) * 1000
     if stalled_ms:
         print(f"{what}: the whole machine stalled for {stalled_ms:.0f} ms meanwhile")
     return StopTiming(
