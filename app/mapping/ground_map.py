@@ -360,11 +360,6 @@ the probe stood within the inflation radius plus two cells of its edge, and an e
 seen from there for the goal's patience has had its look."""
 
 
-def _grown_by_one_cell(mask: NDArray[np.bool_]) -> NDArray[np.bool_]:
-    """``mask`` and its 8 neighbours (a foot found a cell off is the same foot)."""
-    return np.asarray(cv2.dilate(mask.astype(np.uint8), np.ones((3, 3), np.uint8)) > 0)
-
-
 def blind_zone_cells(birdseye: BirdseyeMap, half_width_m: float) -> NDArray[np.bool_]:
     """Unseen bird's-eye cells straight ahead of the robot (|y| <= half_width_m) that lie
     closer than the nearest cell the camera sees in that strip."""
@@ -626,7 +621,8 @@ class GroundMapper:
                 seen_floor = birdseye_floor_patch(outcome.job.floor_mask, self.birdseye) == FLOOR
                 clear = seen_floor & self._near_cells
                 if feet is not None:
-                    clear &= ~_grown_by_one_cell(feet)
+                    # A foot found a cell off (diagonals too) is the same foot.
+                    clear &= ~inflate_obstacles(feet, math.sqrt(2))
                 memory.see_floor(index_then[clear])
             if standing_here is not None:
                 patch[standing_here] = NOT_FLOOR
