@@ -110,6 +110,11 @@ class PerceptionConfig(StrictModel):
     zone_min_floor_confidence: Fraction = 0.5
     """Below this ``zone_floor_confidence`` the safe zone is taken for an obstacle, not
     floor: the way ahead counts as blocked and the robot turns to look elsewhere."""
+    zone_min_known_floor: Fraction = 0.6
+    """...unless the map already knows at least this share of the zone's ground is floor
+    (confirmed flat by motion parallax or driven over) and geometry sees nothing
+    standing in the zone: a threshold or a new floor material the colour method doubts,
+    where geometry has shown floor. 1.0: only a zone the map knows whole."""
     learned_floor_pass_period_s: Annotated[float, Field(ge=0.0, le=10.0)] = 1.0
     """The daemon runs ``floornet``'s second pass for a learned floor colour (a whole
     extra network run) at most this often; on the frames between, the map takes no

@@ -76,6 +76,9 @@ class MapMsg:
     goal_xy, frontier_reason : the goal, or None and why there is none
     clearance_ahead_m : free floor ahead of the robot's front edge in this frame's
         bird's-eye view (robot-wide corridor)
+    zone_known_floor : the share of the safe zone's ground the map knows is floor (0 with
+        something standing in it; `app.mapping.ground_map.MapUpdate.zone_known_floor`),
+        or None when not computed
     """
 
     seq: int
@@ -88,6 +91,7 @@ class MapMsg:
     goal_xy: tuple[float, float] | None
     frontier_reason: str
     clearance_ahead_m: float
+    zone_known_floor: float | None = None
 
     def age_s(self, now_s: float | None = None) -> float:
         return (time.monotonic() if now_s is None else now_s) - self.capture_s

@@ -366,9 +366,15 @@ function renderStatus(s) {
     s.clearance_ahead_m !== null && s.clearance_ahead_m < 0.2 ? "warn" : "");
   const zoneMin = typeof s.zone_min_floor_confidence === "number" ? s.zone_min_floor_confidence : 0.5;
   const zoneLow = typeof s.zone_floor_confidence === "number" && s.zone_floor_confidence < zoneMin;
+  // The map's geometry can know the zone is floor where colour doubts it (a threshold).
+  const knownMin = typeof s.zone_min_known_floor === "number" ? s.zone_min_known_floor : 1;
+  const zoneKnown = typeof s.zone_known_floor === "number" && s.zone_known_floor >= knownMin;
+  const knownText = typeof s.zone_known_floor === "number"
+    ? " · map knows " + fmt(s.zone_known_floor * 100) + " %" : "";
   setCell("h-zone", typeof s.zone_floor_confidence === "number"
-    ? fmt(s.zone_floor_confidence * 100) + " %" + (zoneLow ? " · not floor (below " + fmt(zoneMin * 100) + " %)" : "")
-    : "–", zoneLow ? "bad" : (typeof s.zone_floor_confidence === "number" ? "ok" : ""));
+    ? fmt(s.zone_floor_confidence * 100) + " %" + knownText +
+      (zoneLow ? (zoneKnown ? " · floor by the map" : " · not floor (below " + fmt(zoneMin * 100) + " %)") : "")
+    : "–", zoneLow && !zoneKnown ? "bad" : (typeof s.zone_floor_confidence === "number" ? (zoneLow ? "warn" : "ok") : ""));
   const estopped = s.state === "estopped";
   // What holds the robot now: the current stop's reason, else what the stop lines say
   // (a failed calibration leaves autonomy off without a protective stop).

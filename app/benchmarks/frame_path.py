@@ -198,6 +198,7 @@ class _FramePath:
                 image,
                 geometry="defer",
                 geometry_outcome=self.geometry_outcome,
+                safe_zone_px=floor.safe_zone_mask,
             ),
         )
         self.geometry_outcome = None
@@ -232,8 +233,13 @@ class _FramePath:
             return cells, grid, path
 
         cells, grid, path = samples.timed("map_window", window)
-        # Fresh perception that doubts the safe zone blocks the way ahead (`zone_not_floor`).
-        blocked = floor.zone_floor_confidence < config.perception.zone_min_floor_confidence
+        # Perception that doubts the safe zone blocks the way ahead, unless the map knows
+        # it is floor (`zone_blocks`).
+        perception = config.perception
+        blocked = floor.zone_floor_confidence < perception.zone_min_floor_confidence and not (
+            update.zone_known_floor is not None
+            and update.zone_known_floor >= perception.zone_min_known_floor
+        )
         decision = samples.timed(
             "steering",
             lambda: self.steering.decide(cells, grid, pose, path, blocked_ahead=blocked),

@@ -307,6 +307,16 @@ class FloorMemory:
         gone = marked[marks[marked] < self.params.standing_min_marks]
         self.standing.reshape(-1)[gone] = 0
 
+    def known_share(self, cells: NDArray[np.int64]) -> float:
+        """Of these flat world-cell indices (-1: off the map, counted as not known), the
+        share that is confirmed floor (a standing mark takes a cell out of it); 0 for
+        none."""
+        cells = np.asarray(cells, dtype=np.int64).reshape(-1)
+        if cells.size == 0:
+            return 0.0
+        known = self.confirmed.reshape(-1)[cells[cells >= 0]] == 1
+        return float(np.count_nonzero(known)) / cells.size
+
     def correct_patch(self, patch: NDArray[np.uint8], index: NDArray[np.int64]) -> int:
         """In place: patch cells the colour method calls not-floor on confirmed floor
         become floor. Returns how many were changed."""

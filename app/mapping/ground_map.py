@@ -174,6 +174,10 @@ class MapUpdate:
     """The geometric tests the frame made due (parallax, walls), for the caller to run off
     the motors' path (`run_geometry_job`) and hand back to a later
     `GroundMapper.update` (only with ``geometry="defer"``)."""
+    zone_known_floor: float | None = None
+    """Of the ground the frame's safe zone shows, the share the map knows is floor
+    (confirmed flat by parallax or driven over); 0 when geometry saw something standing
+    in the zone; None without a ``safe_zone_px`` (`GroundMapper.update`)."""
 
 
 GeometryMode = Literal["inline", "defer", "hold"]
@@ -493,6 +497,8 @@ class GroundMapper:
         self._corrections_made = 0
         """...and how many there have been."""
         self._confirmed: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
+        self._zone: tuple[NDArray[np.bool_], NDArray[np.bool_]] | None = None
+        """The last safe-zone mask handed to `update` and the bird's-eye cells it shows."""
         self._cut: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
         """The colour floor the last parallax test found behind something standing (image
         mask), where and when: carried, like ``_confirmed``, to the frames between."""
@@ -518,6 +524,7 @@ class GroundMapper:
         unsure_mask: NDArray[np.bool_] | None = None,
         geometry: GeometryMode = "inline",
         geometry_outcome: GeometryOutcome | None = None,
+        safe_zone_px: NDArray[np.bool_] | None = None,
     ) -> MapUpdate:
         """Fuse one frame's floor mask seen at ``T_world_robot`` (the travel from the
         previous call's pose fades the older evidence; time alone never does). With the
@@ -529,7 +536,9 @@ class GroundMapper:
         to adopt. ``now_s`` paces those tests and the scan match, which may correct
         ``T_world_robot`` before the frame is fused (`MapUpdate.correction`). Not-floor
         pixels of ``unsure_mask`` (same size as the mask) give no evidence: they count as
-        unseen."""
+        unseen. With ``safe_zone_px`` (the perception's safe zone, same size as the mask)
+        the update says how much of the zone's ground the map knows is floor
+        (`MapUpdate.zone_known_floor`)."""
         here = (T_world_robot.x_m, T_world_robot.y_m, T_world_robot.theta_rad)
         adopted: _Adopted | None = None
         job: GeometryJob | None = None
@@ -626,6 +635,8 @@ class GroundMapper:
                 memory.see_floor(index_then[clear])
             if standing_here is not None:
                 patch[standing_here] = NOT_FLOOR
+        # Every cell geometry saw standing in this frame (the safe-zone check reads it).
+        standing_cells = standing_here
         if standing_px is not None and image is not None:
             standing = birdseye_floor_patch(standing_px, self.birdseye) == FLOOR
             # Only its foot stands where the homography puts it (see `run_geometry_job`).
@@ -633,14 +644,31 @@ class GroundMapper:
             feet = birdseye_floor_patch(feet_image, self.birdseye) == FLOOR
             memory.mark_standing(index[feet], image[standing_px][::STANDING_COLOUR_STRIDE])
             patch[standing] = NOT_FLOOR
+            standing_cells = standing if standing_cells is None else standing_cells | standing
         memory.drive_over(T_world_robot, self.mapping.robot_radius_m)
+        zone_known_floor = None
+        if safe_zone_px is not None:
+            zone_cells = self._zone_cells(safe_zone_px)
+            # Something standing in the zone this frame: nothing the map remembers of the
+            # floor there says the way ahead is clear.
+            stands = standing_cells is not None and bool((standing_cells & zone_cells).any())
+            zone_known_floor = 0.0 if stands else memory.known_share(index[zone_cells])
         corrected = memory.correct_patch(patch, index)
         if cut_px is not None:
             # Geometry over memory too: known floor behind a standing surface is out of
             # sight, not floor seen, so the floor along those rays ends at its foot.
             patch[birdseye_floor_patch(cut_px, self.birdseye) == FLOOR] = NOT_FLOOR
         summary = self.grid.update(patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot)
-        return MapUpdate(patch, summary, corrected, correction, match_s, job)
+        return MapUpdate(patch, summary, corrected, correction, match_s, job, zone_known_floor)
+
+    def _zone_cells(self, safe_zone_px: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """The bird's-eye cells the safe zone's pixels show (kept while the mask is the
+        same)."""
+        cached = self._zone
+        if cached is None or not np.array_equal(cached[0], safe_zone_px):
+            cells = birdseye_floor_patch(safe_zone_px, self.birdseye) == FLOOR
+            cached = self._zone = (safe_zone_px.copy(), np.asarray(cells, dtype=np.bool_))
+        return cached[1]
 
     def _geometry_job(
         self,

@@ -12,11 +12,12 @@ import logging
 import math
 
 from app.channels import wait_event
+from app.config import FloornavConfig
 from app.control.kinematics import RateLimiter, twist_to_pwm
 from app.control.mux import MuxOutput, Twist
 from app.hardware.interfaces import DeviceState
 from app.hardware.serial_link import LinkError, NotConnectedError
-from app.messages import DriveMsg, FloorMsg
+from app.messages import DriveMsg, FloorMsg, MapMsg
 from app.runtime.context import Shared
 from app.runtime.stops import ProtectiveStop
 from app.runtime.telemetry import FloatWindow
@@ -31,14 +32,37 @@ def _ms_over(age_s: float) -> int:
 
 
 def zone_not_floor(shared: Shared, now: float) -> FloorMsg | None:
-    """The newest floor result if it is fresh and says the safe zone is not floor
-    (``zone_floor_confidence`` below ``perception.zone_min_floor_confidence``)."""
+    """The newest floor result if the safe zone it shows blocks the way (`zone_blocks`)."""
     floor = shared.floors.peek()
-    if floor is None or floor.age_s(now) > shared.config.safety.perception_max_age_s:
-        return None
-    if floor.zone_floor_confidence >= shared.config.perception.zone_min_floor_confidence:
-        return None
-    return floor
+    return floor if zone_blocks(shared.config, floor, shared.maps.peek(), now) else None
+
+
+def zone_blocks(
+    config: FloornavConfig, floor: FloorMsg | None, map_msg: MapMsg | None, now: float
+) -> bool:
+    """Whether the safe zone blocks the way: the floor result is fresh and its
+    ``zone_floor_confidence`` is below ``perception.zone_min_floor_confidence``, and the
+    fresh map does not know the zone's ground is floor (at least
+    ``perception.zone_min_known_floor`` of it confirmed flat by parallax or driven
+    over, nothing standing in it).
+
+    Geometry over colour, as in the map: a threshold or a floor material the colour
+    method doubts is not an obstacle where geometry has shown floor. An obstacle in the
+    zone is seen standing, or hides the ground behind it (which is then not confirmed
+    from here), so the map does not wave it through."""
+    max_age_s = config.safety.perception_max_age_s
+    perception = config.perception
+    if floor is None or floor.age_s(now) > max_age_s:
+        return False
+    if floor.zone_floor_confidence >= perception.zone_min_floor_confidence:
+        return False
+    known = (
+        map_msg is not None
+        and map_msg.zone_known_floor is not None
+        and map_msg.age_s(now) <= max_age_s
+        and map_msg.zone_known_floor >= perception.zone_min_known_floor
+    )
+    return not known
 
 
 def without_forward_motion(out: MuxOutput) -> MuxOutput:
@@ -101,9 +125,17 @@ class SafetyGate:
         minimum = shared.config.perception.zone_min_floor_confidence
         problem = None
         if applies and floor is not None:
+            map_msg = shared.maps.peek()
+            known = map_msg.zone_known_floor if map_msg is not None else None
+            map_says = (
+                f"; the map knows {known:.0%} of it"
+                f" (< {shared.config.perception.zone_min_known_floor:.0%})"
+                if known is not None
+                else ""
+            )
             problem = (
                 f"safe zone is not floor (confidence {floor.zone_floor_confidence:.2f} < "
-                f"{minimum:.2f})"
+                f"{minimum:.2f}{map_says})"
             )
         event = shared.policy.observe("not_floor", problem, now)
         if problem is None:

@@ -92,6 +92,12 @@ def status(rt: Runtime) -> dict[str, Any]:
         "clearance_ahead_m": round(map_msg.clearance_ahead_m, 3) if map_msg else None,
         "zone_floor_confidence": round(floor.zone_floor_confidence, 3) if floor else None,
         "zone_min_floor_confidence": shared.config.perception.zone_min_floor_confidence,
+        "zone_known_floor": (
+            round(map_msg.zone_known_floor, 3)
+            if map_msg is not None and map_msg.zone_known_floor is not None
+            else None
+        ),
+        "zone_min_known_floor": shared.config.perception.zone_min_known_floor,
         # What holds the robot back now: the drive stage's last gate, else a hold that
         # applies whatever the command (a device gone, a latched fault).
         "stop_cause": stop.cause if stop is not None else (hold.cause if hold else None),
@@ -237,6 +243,7 @@ def report(rt: Runtime) -> dict[str, Any]:
         "watchdog_stops": counters.watchdog_stops,
         "clearance_stops": counters.clearance_stops,
         "premise_stops": counters.premise_stops,
+        "zone_known_floor_frames": counters.zone_known_floor_frames,
         "steering_decisions": dict(rt.steering_stage.reasons),
         "goals_given_up": rt.mapping.goals_given_up,
         "frontier_clusters_given_up": rt.mapping.clusters_given_up,

@@ -36,8 +36,8 @@ from app.mapping.occupancy import classify_log_odds
 from app.messages import FloorMsg, FrameMsg, MapMsg, WorldMapMsg
 from app.perception.floor_net import LearnedPassBackoff
 from app.perception.image_checks import ImageError
-from app.perception.pipeline import FloorResult
-from app.perception.safe_zone import SafeZoneError
+from app.perception.pipeline import FloorResult, trapezoid_from_config
+from app.perception.safe_zone import SafeZoneError, Trapezoid, safe_zone_mask
 from app.runtime.context import Shared
 from app.runtime.drive import zone_not_floor
 from app.runtime.exploration import CoverageClock, Exploration, Phase, PhaseChange
@@ -351,6 +351,8 @@ class MappingStage:
         """While returning: the path home from the newest frontier search."""
         self.on_phase: Callable[[PhaseChange], None] | None = None
         """Told every exploration phase change (the runtime stops and saves the map)."""
+        self._zone: tuple[tuple[tuple[int, ...], Trapezoid], NDArray[np.bool_]] | None = None
+        """The safe zone's pixel mask for a frame size and trapezoid (`_safe_zone_px`)."""
 
     def _new_exploration(self) -> Exploration:
         steering = self.shared.config.steering
@@ -390,6 +392,7 @@ class MappingStage:
             unsure_mask=floor.unsure_mask,
             geometry=geometry,
             geometry_outcome=geometry_outcome,
+            safe_zone_px=self._safe_zone_px(floor.floor_mask.shape),
         )
         if update.correction is not None:
             # The frame went into the map at the corrected pose; odometry follows in `run`.
@@ -422,8 +425,23 @@ class MappingStage:
             goal_xy=goal.xy if goal is not None else None,
             frontier_reason=reason,
             clearance_ahead_m=clearance,
+            zone_known_floor=update.zone_known_floor,
         )
         return msg, update
+
+    def _safe_zone_px(self, shape: tuple[int, ...]) -> NDArray[np.bool_] | None:
+        """Perception's safe zone on frames of this shape (one array while neither the
+        shape nor the configured zone changes, so the mapper keeps its projection);
+        None when it does not fit the frame (perception rejects such frames anyway)."""
+        key = (shape, trapezoid_from_config(self.shared.config.perception.safe_zone))
+        if self._zone is None or self._zone[0] != key:
+            try:
+                zone = safe_zone_mask((shape[0], shape[1]), key[1])
+            except SafeZoneError:
+                return None
+            zone.setflags(write=False)
+            self._zone = (key, zone)
+        return self._zone[1]
 
     def _goal_and_reason(
         self, frontier: FrontierSearch | None, home_goal: FrontierGoal | None
@@ -510,6 +528,13 @@ class MappingStage:
                 shared.stages.add("scan_match", update.match_s)
             shared.stages.add("mapping", shared.clock() - start)
             shared.counters.frames_mapped += 1
+            perception = shared.config.perception
+            if (
+                floor.zone_floor_confidence < perception.zone_min_floor_confidence
+                and msg.zone_known_floor is not None
+                and msg.zone_known_floor >= perception.zone_min_known_floor
+            ):
+                shared.counters.zone_known_floor_frames += 1
             shared.maps.publish(msg)
             if update.geometry_job is not None:
                 job = update.geometry_job

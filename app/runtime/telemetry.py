@@ -129,6 +129,8 @@ class Counters:
     clearance_stops: int = 0
     premise_stops: int = 0
     """Times the safe zone ahead stopped being floor while driving (rising edges)."""
+    zone_known_floor_frames: int = 0
+    """Frames whose safe zone perception doubted but the map knew was floor (no stop)."""
     faults: int = 0
     """Faults latched (they need the operator)."""
     protective_stops: int = 0

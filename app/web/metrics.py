@@ -168,6 +168,15 @@ class RuntimeCollector(Collector):
             "(NaN before the first)",
             value=floor.zone_floor_confidence if floor is not None else float("nan"),
         )
+        map_msg = service.maps.peek()
+        yield GaugeMetricFamily(
+            "floornav_zone_known_floor",
+            "Share of the safe zone's ground the map knows is floor, 0..1, newest map (NaN "
+            "before the first)",
+            value=map_msg.zone_known_floor
+            if map_msg is not None and map_msg.zone_known_floor is not None
+            else float("nan"),
+        )
         yield GaugeMetricFamily(
             "floornav_uptime_seconds", "Seconds since the run started", value=service.elapsed_s()
         )
@@ -191,6 +200,11 @@ class RuntimeCollector(Collector):
             ("watchdog_stops", counters.watchdog_stops, "Stops for stale perception or map"),
             ("clearance_stops", counters.clearance_stops, "Forward motion refused for clearance"),
             ("premise_stops", counters.premise_stops, "Stops because the safe zone is not floor"),
+            (
+                "zone_known_floor_frames",
+                counters.zone_known_floor_frames,
+                "Frames whose safe zone perception doubted but the map knew was floor",
+            ),
             ("estops", service.mux.estops, "E-stops latched"),
             ("faults", counters.faults, "Faults latched (they need the operator)"),
             ("commands_sent", counters.commands_sent, "Drive commands sent to the Uno"),

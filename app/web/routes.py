@@ -94,7 +94,9 @@ def build_api_router(ctx: WebContext) -> APIRouter:
     async def get_status() -> dict[str, Any]:
         """The daemon's snapshot: state, fps, frame age, stage timings, pose, devices,
         ``zone_floor_confidence`` (how sure perception is that the safe zone ahead is
-        floor; null before the first frame) and the protective stop holding the robot
+        floor; null before the first frame), ``zone_known_floor`` (the share of the
+        zone's ground the map knows is floor; at ``zone_min_known_floor`` or more the
+        zone is floor whatever perception says) and the protective stop holding the robot
         back, if any (``stop_cause``, ``stop_reason``)."""
         result: dict[str, Any] = json_safe(service.status())
         return result

@@ -109,6 +109,18 @@ def test_a_box_on_confirmed_floor_becomes_occupied_once_seen_standing() -> None:
     assert grid.classify()[box] == OCCUPIED
 
 
+def test_known_share_counts_confirmed_cells_and_not_marked_or_off_map_ones() -> None:
+    memory = FloorMemory(WORLD, FloorMemoryParams(standing_min_marks=1))
+    cells = np.arange(10, dtype=np.int64)
+    memory.confirm_cells(cells[:6])
+    assert memory.known_share(cells) == 0.6
+    memory.mark_standing(cells[:1])  # seen standing: no longer known floor
+    assert memory.known_share(cells) == 0.5
+    # Off the map counts as not known; nothing asked, nothing known.
+    assert memory.known_share(np.array([1, 2, -1, -1], dtype=np.int64)) == 0.5
+    assert memory.known_share(np.zeros(0, dtype=np.int64)) == 0.0
+
+
 def uniform_patch_bgr(bgr: tuple[int, int, int]) -> np.ndarray:
     return np.broadcast_to(np.array(bgr, np.uint8), (*PATCH.shape, 3)).copy()
 

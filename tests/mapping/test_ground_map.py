@@ -402,3 +402,55 @@ def test_a_foot_marked_where_the_floor_ended_too_soon_leaves_once_floor_is_seen_
         (True, False),  # floor seen on it once: two left; the new foot has one
         (False, True),
     ]
+
+
+def test_the_map_says_how_much_of_the_safe_zone_it_knows_is_floor_and_none_with_a_foot_in_it() -> (
+    None
+):
+    """`MapUpdate.zone_known_floor`: the share of the safe zone's ground the memory holds
+    as confirmed floor, 0 when geometry sees something standing in the zone (a plain
+    view whose floor ends inside the zone: the walls test finds a foot there)."""
+    from app.config import load_config
+    from app.perception.pipeline import trapezoid_from_config
+    from app.perception.safe_zone import safe_zone_mask
+
+    mapper, _, _ = sim_mapper(standing_by_horizon=True, parallax_floor=False)
+    image = np.full((480, 640, 3), 120, np.uint8)
+    zone = safe_zone_mask(
+        image.shape[:2], trapezoid_from_config(load_config(None).perception.safe_zone)
+    )
+    rows = np.flatnonzero(zone.any(axis=1))
+    near_m, far_m = mapper.calibration.image_to_ground(
+        np.array([[320.0, rows[-1]], [320.0, rows[0]]])
+    )[:, 0]
+    assert 0.25 < near_m < far_m < near_m + 0.1 < 0.4  # the shipped zone, ~0.3 m ahead
+    pose = Pose2D(0.0, 0.0, 0.0)
+
+    def floor_to(distance_m: float) -> np.ndarray:
+        row = mapper.calibration.ground_to_image(np.array([[distance_m, 0.0]]))[0, 1]
+        mask = np.zeros(image.shape[:2], bool)
+        mask[int(row) :] = True
+        return mask
+
+    def known(distance_m: float, k: int) -> float | None:
+        update = mapper.update(
+            floor_to(distance_m), pose, k * WALLS_PERIOD_S, image, safe_zone_px=zone
+        )
+        return update.zone_known_floor
+
+    open_m = far_m + 0.6
+    assert known(open_m, 0) == 0.0  # nothing confirmed yet
+    x, y = mapper.memory.world_grid.cell_centers()
+    # Confirmed floor on the left half of the way ahead: about half the zone is known.
+    mapper.memory.confirm_cells(np.flatnonzero((x > 0) & (x < open_m) & (y >= 0) & (y < 1)))
+    assert 0.3 < known(open_m, 1) < 0.7
+    mapper.memory.confirm_cells(np.flatnonzero((x > 0) & (x < open_m) & (np.abs(y) < 1)))
+    assert known(open_m, 2) == 1.0
+    # The floor ends in the middle of the zone: a foot in the zone, nothing known there.
+    assert known((near_m + far_m) / 2, 3) == 0.0
+    # Back to the open view: the foot's cells (most of the zone: its ground is 8 cm deep,
+    # two rows of cells) are no longer known floor until they are confirmed again.
+    again = known(open_m, 4)
+    assert again is not None and 0.0 < again < 0.5
+    # Without the zone the mapper says nothing.
+    assert mapper.update(floor_to(open_m), pose, 5 * WALLS_PERIOD_S, image).zone_known_floor is None

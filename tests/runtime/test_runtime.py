@@ -349,8 +349,12 @@ async def test_learned_floor_passes_run_at_most_once_per_period() -> None:
 async def test_a_safe_zone_that_is_not_floor_stops_forward_motion_until_it_is_again() -> None:
     made, factory = recording_factory(ZoneConfidenceSegmenter)
 
-    # No clearance stop: what holds the robot back here is the premise alone.
-    config = sim_config(safety={"min_clearance_m": 0.0, "min_clearance_floor_m": 0.0})
+    # No clearance stop: what holds the robot back here is the premise alone. No
+    # parallax: the map knows no floor ahead that could overrule perception's doubt.
+    config = sim_config(
+        safety={"min_clearance_m": 0.0, "min_clearance_floor_m": 0.0},
+        mapping={"parallax_floor": False},
+    )
     async with running(config, segmenter_factory=factory) as (rt, _):
         sim = rt.devices.sim
         assert sim is not None and sim.uno is not None
@@ -365,9 +369,12 @@ async def test_a_safe_zone_that_is_not_floor_stops_forward_motion_until_it_is_ag
         status = rt.status()
         assert status["zone_floor_confidence"] == 0.1
         assert status["stop_cause"] == "not_floor"
-        assert status["stop_reason"] == (
-            "safe zone is not floor (confidence 0.10 < 0.50): turning to look elsewhere"
-        )
+        # The reason says what perception and the map each make of the zone.
+        assert re.fullmatch(
+            r"safe zone is not floor \(confidence 0\.10 < 0\.50; the map knows \d+% of it "
+            r"\(< 60%\)\): turning to look elsewhere",
+            status["stop_reason"],
+        ), status["stop_reason"]
 
         # Autonomy turns in place to look elsewhere: no forward motion, but turning.
         def turning_in_place() -> bool:
@@ -405,7 +412,7 @@ async def test_a_safe_zone_that_is_not_floor_stops_forward_motion_until_it_is_ag
             rt.teleop("t", 0.2, 0.0)
             await asyncio.sleep(0.05)
             assert uno.pwm == (0, 0)
-        assert rt.status()["stop_reason"].endswith("< 0.50): no forward motion")
+        assert rt.status()["stop_reason"].endswith("(< 60%)): no forward motion")
         assert rt.counters.premise_stops == 1, "one stop, counted once"
 
         # The zone is floor again: the stop clears by itself and forward motion resumes.
@@ -424,6 +431,39 @@ async def test_a_safe_zone_that_is_not_floor_stops_forward_motion_until_it_is_ag
         )
         assert rt.counters.premise_stops == 1
         assert rt.report()["premise_stops"] == 1
+
+
+async def test_a_safe_zone_the_map_knows_is_floor_is_driven_on_whatever_perception_doubts() -> None:
+    made, factory = recording_factory(ZoneConfidenceSegmenter)
+    config = sim_config(
+        safety={"min_clearance_m": 0.0, "min_clearance_floor_m": 0.0},
+        mapping={"parallax_floor": False},
+    )
+    async with running(config, segmenter_factory=factory) as (rt, _):
+        sim, mapper = rt.devices.sim, rt.shared.mapper
+        assert sim is not None and sim.uno is not None and mapper is not None
+        uno = sim.uno
+        made[0].confidence = 0.1
+        # As if the robot had driven over all of it: geometry knows the floor.
+        await rt.mapping.worker.run(mapper.memory.confirmed.fill, 1)
+        await wait_for(
+            lambda: rt.status()["zone_known_floor"] == 1.0, 2.0, "the map to know the zone"
+        )
+        await rt.start()
+        await wait_for(lambda: uno.pwm[0] > 0 and uno.pwm[1] > 0, 5.0, "forward motion")
+        status = rt.status()
+        assert status["zone_floor_confidence"] == 0.1
+        assert status["stop_cause"] != "not_floor"
+        assert rt.counters.premise_stops == 0
+        assert rt.counters.zone_known_floor_frames > 0
+        # The map forgets (as if all of it had been seen standing): perception's doubt
+        # stops the robot again.
+        await rt.mapping.worker.run(mapper.memory.confirmed.fill, 0)
+        await wait_for(lambda: rt.counters.premise_stops == 1, 2.0, "the premise stop")
+        status = rt.status()
+        assert status["zone_known_floor"] < 0.6
+        assert "the map knows" in status["stop_reason"]
+        assert rt.report()["zone_known_floor_frames"] == rt.counters.zone_known_floor_frames
 
 
 class HangingSegmenter(FloorSegmenter):
