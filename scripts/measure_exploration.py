@@ -99,16 +99,18 @@ def table(command: str) -> str:
         "*Standing near truth*: of the cells geometry marked standing, the share within",
         "one cell of a real wall or box; *probe-able edges*: of the cells the map calls",
         "occupied, the share the frontier search may still probe (near 0, exploration",
-        "ends at the first edge the robot cannot prove floor); '-' for older reports.",
-        "*Build*: the commit each run measured.",
+        "ends at the first edge the robot cannot prove floor); *premise stops (map",
+        "knew)*: stops because the safe zone was not floor, and in brackets the frames",
+        "whose zone perception doubted but the map knew was floor; '-' for older",
+        "reports. *Build*: the commit each run measured.",
         "",
         f"Command: `{command}`",
         "",
         "| build | world | seed | s | reachable coverage | coverage | time to 50 % / 90 % s | "
         "final state | home m | collisions | occupied near truth | standing near truth | "
-        "probe-able edges | goals given up (whole frontiers) | map IoU | pose error p95 m | "
-        "latency p95 ms |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "probe-able edges | goals given up (whole frontiers) | premise stops (map knew) | "
+        "map IoU | pose error p95 m | latency p95 ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for path in sorted(MEASUREMENTS.glob("explore-*.json")):
         r = json.loads(path.read_text())
@@ -135,6 +137,7 @@ def table(command: str) -> str:
                     cell(memory.get("probe_edge_share")),
                     f"{cell(r.get('goals_given_up'))} "
                     f"({cell(r.get('frontier_clusters_given_up'))})",
+                    f"{cell(r.get('premise_stops'))} ({cell(r.get('zone_known_floor_frames'))})",
                     cell(truth.get("map_iou")),
                     cell(pose.get("p95")),
                     cell((r.get("latency_ms") or {}).get("p95"), 1),
