@@ -85,6 +85,7 @@ from app.mapping.ground_map import (
 from app.perception.pipeline import FloorSegmenter
 from app.perception.planar import PlanarParams, confirm_floor
 from app.runtime import clearance_ahead_m, map_window, path_to_xy
+from app.runtime.drive import premise_broken
 from app.runtime.stages import WORLD_MAP_PERIOD_S
 from app.sim.setup import camera_model, renderer_from_config, sim_floor_calibration
 from app.sim.world import World
@@ -235,10 +236,8 @@ class _FramePath:
         cells, grid, path = samples.timed("map_window", window)
         # Perception that doubts the safe zone blocks the way ahead, unless the map knows
         # it is floor (`zone_blocks`).
-        perception = config.perception
-        blocked = floor.zone_floor_confidence < perception.zone_min_floor_confidence and not (
-            update.zone_known_floor is not None
-            and update.zone_known_floor >= perception.zone_min_known_floor
+        blocked = premise_broken(
+            config.perception, floor.zone_floor_confidence, update.zone_known_floor
         )
         decision = samples.timed(
             "steering",

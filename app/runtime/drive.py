@@ -12,7 +12,7 @@ import logging
 import math
 
 from app.channels import wait_event
-from app.config import FloornavConfig
+from app.config import FloornavConfig, PerceptionConfig
 from app.control.kinematics import RateLimiter, twist_to_pwm
 from app.control.mux import MuxOutput, Twist
 from app.hardware.interfaces import DeviceState
@@ -51,18 +51,22 @@ def zone_blocks(
     zone is seen standing, or hides the ground behind it (which is then not confirmed
     from here), so the map does not wave it through."""
     max_age_s = config.safety.perception_max_age_s
-    perception = config.perception
     if floor is None or floor.age_s(now) > max_age_s:
         return False
-    if floor.zone_floor_confidence >= perception.zone_min_floor_confidence:
+    fresh_map = map_msg is not None and map_msg.age_s(now) <= max_age_s
+    known = map_msg.zone_known_floor if map_msg is not None and fresh_map else None
+    return premise_broken(config.perception, floor.zone_floor_confidence, known)
+
+
+def premise_broken(
+    perception: PerceptionConfig, zone_floor_confidence: float, zone_known_floor: float | None
+) -> bool:
+    """Perception doubts the safe zone is floor (confidence below
+    ``zone_min_floor_confidence``) and the map does not know it is (``zone_known_floor``,
+    None for no map, below ``zone_min_known_floor``)."""
+    if zone_floor_confidence >= perception.zone_min_floor_confidence:
         return False
-    known = (
-        map_msg is not None
-        and map_msg.zone_known_floor is not None
-        and map_msg.age_s(now) <= max_age_s
-        and map_msg.zone_known_floor >= perception.zone_min_known_floor
-    )
-    return not known
+    return zone_known_floor is None or zone_known_floor < perception.zone_min_known_floor
 
 
 def without_forward_motion(out: MuxOutput) -> MuxOutput:

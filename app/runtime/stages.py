@@ -39,7 +39,7 @@ from app.perception.image_checks import ImageError
 from app.perception.pipeline import FloorResult, trapezoid_from_config
 from app.perception.safe_zone import SafeZoneError, Trapezoid, safe_zone_mask
 from app.runtime.context import Shared
-from app.runtime.drive import zone_not_floor
+from app.runtime.drive import premise_broken, zone_not_floor
 from app.runtime.exploration import CoverageClock, Exploration, Phase, PhaseChange
 from app.runtime.telemetry import FloatWindow
 from app.workers import StageWorker
@@ -529,10 +529,9 @@ class MappingStage:
             shared.stages.add("mapping", shared.clock() - start)
             shared.counters.frames_mapped += 1
             perception = shared.config.perception
-            if (
-                floor.zone_floor_confidence < perception.zone_min_floor_confidence
-                and msg.zone_known_floor is not None
-                and msg.zone_known_floor >= perception.zone_min_known_floor
+            confidence = floor.zone_floor_confidence
+            if confidence < perception.zone_min_floor_confidence and not premise_broken(
+                perception, confidence, msg.zone_known_floor
             ):
                 shared.counters.zone_known_floor_frames += 1
             shared.maps.publish(msg)
