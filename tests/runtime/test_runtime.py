@@ -15,7 +15,7 @@ from typing import TypeVar
 import numpy as np
 import pytest
 
-from app.config import PerceptionConfig
+from app.config import FloornavConfig, PerceptionConfig
 from app.devices import Devices, open_devices
 from app.hardware.interfaces import CameraFrame, DeviceState, DeviceStatus
 from app.hardware.protocol import MsgType
@@ -346,16 +346,18 @@ async def test_learned_floor_passes_run_at_most_once_per_period() -> None:
     assert rt.counters.learned_floor_passes == len(passes)
 
 
-async def test_a_safe_zone_that_is_not_floor_stops_forward_motion_until_it_is_again() -> None:
-    made, factory = recording_factory(ZoneConfidenceSegmenter)
-
-    # No clearance stop: what holds the robot back here is the premise alone. No
-    # parallax: the map knows no floor ahead that could overrule perception's doubt.
-    config = sim_config(
+def premise_only_config() -> FloornavConfig:
+    """No clearance stop: what holds the robot back is the premise alone. No parallax: the
+    map knows no floor ahead but what a test puts there."""
+    return sim_config(
         safety={"min_clearance_m": 0.0, "min_clearance_floor_m": 0.0},
         mapping={"parallax_floor": False},
     )
-    async with running(config, segmenter_factory=factory) as (rt, _):
+
+
+async def test_a_safe_zone_that_is_not_floor_stops_forward_motion_until_it_is_again() -> None:
+    made, factory = recording_factory(ZoneConfidenceSegmenter)
+    async with running(premise_only_config(), segmenter_factory=factory) as (rt, _):
         sim = rt.devices.sim
         assert sim is not None and sim.uno is not None
         uno = sim.uno
@@ -435,11 +437,7 @@ async def test_a_safe_zone_that_is_not_floor_stops_forward_motion_until_it_is_ag
 
 async def test_a_safe_zone_the_map_knows_is_floor_is_driven_on_whatever_perception_doubts() -> None:
     made, factory = recording_factory(ZoneConfidenceSegmenter)
-    config = sim_config(
-        safety={"min_clearance_m": 0.0, "min_clearance_floor_m": 0.0},
-        mapping={"parallax_floor": False},
-    )
-    async with running(config, segmenter_factory=factory) as (rt, _):
+    async with running(premise_only_config(), segmenter_factory=factory) as (rt, _):
         sim, mapper = rt.devices.sim, rt.shared.mapper
         assert sim is not None and sim.uno is not None and mapper is not None
         uno = sim.uno
