@@ -133,6 +133,8 @@ class SimulatedUno:
     telemetry_period_ms : telemetry period at boot (the real firmware boots with 0).
     on_command : optional, called (in the simulator's thread) with each valid frame
         received, before its reply goes out.
+    on_deadman : optional, called (in the simulator's thread, after the motors went to
+        zero) with the ``time.monotonic()`` of each deadman trip.
     keep_received : keep every valid frame received in `received` (for tests); a
         long-running Uno turns it off, as the list grows with every command.
     """
@@ -149,6 +151,7 @@ class SimulatedUno:
         ack_delay_s: float = 0.0,
         telemetry_period_ms: int = 0,
         on_command: Callable[[ReceivedCommand], None] | None = None,
+        on_deadman: Callable[[float], None] | None = None,
         keep_received: bool = True,
     ) -> None:
         if not 0 <= banner_protocol_version <= 255:
@@ -167,6 +170,7 @@ class SimulatedUno:
         self.ack_delay_s = ack_delay_s
         self._boot_telemetry_period_ms = telemetry_period_ms
         self._on_command = on_command
+        self._on_deadman = on_deadman
         self._keep_received = keep_received
 
         self._lock = threading.RLock()  # guards what other threads read; plants may call back
@@ -507,6 +511,8 @@ class SimulatedUno:
                 self._pwm_set(0, 0)
                 self._flags |= Telemetry.DEADMAN_TRIPPED
                 self.deadman_trips.append(now)
+            if self._on_deadman is not None:
+                self._on_deadman(now)
         if self._telemetry_period_ms and now >= self._next_telemetry_s:
             self._write(self._telemetry_frame(now))
             period_s = self._telemetry_period_ms / 1000.0

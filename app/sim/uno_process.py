@@ -14,6 +14,9 @@ The child, ``python -m app.sim.uno_process --link PATH [--encoders L R]``, write
 ``MOTOR <left> <right> <t>``
     the motor PWM changed at ``t``, the child's ``time.monotonic()`` (one clock for all
     processes on Linux), so the host knows when the Uno acted, not only when it heard
+``DEADMAN <t>``
+    the deadman tripped at ``t`` (no DRIVE for its period: the host went quiet); the
+    MOTOR line of the zero comes first
 ``RX <type>``
     a valid frame of that `MsgType` arrived (written before its reply goes out)
 ``OK <id>``
@@ -74,6 +77,9 @@ STABLE_RUN_S = 10.0
 
 REQUEST_TIMEOUT_S = 2.0
 """How long a fault-injection request may take (the child handles it in microseconds)."""
+
+DEADMAN_TRIPS_KEPT = 64
+"""Deadman trips the host side remembers (`SimulatedUnoProcess.deadman_trips_s`)."""
 
 _FAULT_REQUESTS = frozenset({"UNPLUG", "REPLUG", "RESET", "SILENT", "ANSWER"})
 
@@ -198,8 +204,15 @@ def main(argv: list[str] | None = None) -> int:
     def report_command(command: ReceivedCommand) -> None:
         lines.write(f"RX {int(command.frame.type)}")
 
+    def report_deadman(trip_s: float) -> None:
+        lines.write(f"DEADMAN {trip_s:.6f}")
+
     with SimulatedUno(
-        plant, link_path=args.link, on_command=report_command, keep_received=False
+        plant,
+        link_path=args.link,
+        on_command=report_command,
+        on_deadman=report_deadman,
+        keep_received=False,
     ) as uno:
         lines.write(f"PTY {uno.pty_path}")
         threading.Thread(
@@ -241,6 +254,8 @@ class SimulatedUnoProcess:
     pwm : the last motor command the child reported ((0, 0) while no child runs).
     pwm_changed_s : when the child applied it (``time.monotonic()``; the host reads the
         report a little later, when its thread gets to it).
+    deadman_trips_s : when the child's deadman tripped (``time.monotonic()``, newest
+        last, the latest `DEADMAN_TRIPS_KEPT`).
     restarts : how many times the child died while in use (each death is followed by
         a restart).
     """
@@ -268,6 +283,9 @@ class SimulatedUnoProcess:
         self.pty_path = ""
         self.pwm = (0, 0)
         self.pwm_changed_s = time.monotonic()
+        self.deadman_trips_s: collections.deque[float] = collections.deque(
+            maxlen=DEADMAN_TRIPS_KEPT
+        )
         self.restarts = 0
 
         self._dir: Path | None = None
@@ -517,6 +535,8 @@ class SimulatedUnoProcess:
                 self.pwm_changed_s = float(words[2])
                 self.pwm = (left, right)
                 self.plant.apply_pwm(left, right)
+            elif kind == "DEADMAN":
+                self.deadman_trips_s.append(float(words[0]))
             elif kind == "RX":
                 with self._received_lock:
                     self._received[int(words[0])] += 1

@@ -20,7 +20,7 @@ from pathlib import Path
 import pytest
 
 from app.hardware.interfaces import DeviceState
-from app.hardware.protocol import MsgType, Telemetry, telemetry_period_payload
+from app.hardware.protocol import MsgType, Telemetry, drive_payload, telemetry_period_payload
 from app.hardware.serial_link import UnoLink, UnoLinkConfig
 from app.sim.sim_uno import SimulatedUno
 from app.sim.uno_process import PROJECT_ROOT, SimulatedUnoProcess
@@ -109,6 +109,31 @@ async def test_a_link_drives_the_plant_and_reads_its_encoders(
     assert uno.count(MsgType.HELLO) >= 1 and uno.count(MsgType.DRIVE) >= 1
     assert uno.count(MsgType.STOP) >= 2  # the handshake's and ours
     assert uno.restarts == 0
+
+
+def test_the_host_hears_when_the_childs_deadman_trips(
+    uno: SimulatedUnoProcess, plant: RecordingPlant
+) -> None:
+    # Tests tell a stop the host sent from one the firmware made because the host went
+    # quiet (tests/browser/test_operator_stop.py); both show as PWM 0/0.
+    host = RawHost(uno.port)
+    try:
+        host.command(MsgType.DRIVE, drive_payload(90, 90))
+        sent_s = time.monotonic()
+        deadline = time.monotonic() + 2.0
+        while not uno.deadman_trips_s and time.monotonic() < deadline:
+            time.sleep(0.01)
+        assert uno.pwm == (0, 0) and plant.pwm == (0, 0)
+        assert len(uno.deadman_trips_s) == 1
+        trip_s = uno.deadman_trips_s[0]
+        assert 0.25 <= trip_s - sent_s < 1.0
+        assert uno.pwm_changed_s == pytest.approx(trip_s, abs=0.01)
+        host.command(MsgType.DRIVE, drive_payload(90, 90))
+        host.command(MsgType.STOP)  # a stop the host sent is no trip
+        time.sleep(0.35)
+        assert len(uno.deadman_trips_s) == 1
+    finally:
+        host.close()
 
 
 async def test_a_killed_child_is_restarted_and_the_link_reconnects_on_the_same_port(
