@@ -313,16 +313,28 @@ async def test_learned_floor_second_passes_are_counted_in_the_report() -> None:
 
 
 class BudgetedPassSegmenter:
-    """Runs (says it ran) a learned-floor pass, adding floor, whenever the daemon lets it."""
+    """Runs (says it ran) a learned-floor pass, adding floor, whenever the daemon lets it.
+
+    ``due`` records when the perception stage decided (it sets ``learned_pass_due`` on its
+    loop right after reading its clock), not when ``segment`` ran: the worker thread may
+    start a frame late, by a different delay each time, on a loaded machine."""
 
     def __init__(self, config: PerceptionConfig) -> None:
         self.inner = FloorSegmenter(config)
         self.learned_floor: tuple[tuple[float, float, float], ...] = ()
-        self.learned_pass_due = True
+        self._due = True
         self.due: list[tuple[float, bool]] = []
 
+    @property
+    def learned_pass_due(self) -> bool:
+        return self._due
+
+    @learned_pass_due.setter
+    def learned_pass_due(self, due: bool) -> None:
+        self._due = due
+        self.due.append((time.monotonic(), due))
+
     def segment(self, image: np.ndarray) -> FloorResult:
-        self.due.append((time.monotonic(), self.learned_pass_due))
         result = self.inner.segment(image)
         if not self.learned_pass_due:
             return result
@@ -341,7 +353,9 @@ async def test_learned_floor_passes_run_at_most_once_per_period() -> None:
     passes = [t for t, d in due if d]
     span_s = due[-1][0] - due[0][0]
     assert 2 <= len(passes) <= span_s / 0.25 + 1
-    assert all(b - a >= 0.25 - 0.002 for a, b in itertools.pairwise(passes))
+    # A pass per frame would be 33 ms apart, half the period 125 ms; 20 ms of slack is
+    # for the loop thread losing the GIL between the stage's clock read and the setter.
+    assert all(b - a >= 0.25 - 0.02 for a, b in itertools.pairwise(passes))
     assert len(due) - len(passes) >= 20  # the frames between: the first pass only
     assert rt.counters.learned_floor_passes == len(passes)
 
