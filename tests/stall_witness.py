@@ -21,6 +21,7 @@ import subprocess
 import sys
 import threading
 import time
+from typing import Self
 
 REPORT_GAP_S = 0.03
 """Oversleeps reported (shorter ones are a busy core's ordinary wake-up delay)."""
@@ -41,7 +42,32 @@ while True:
 """
 
 
-class StallWitness:
+class _Witness:
+    """What both witnesses share: ``start``/``stop`` as a context, and `settled_gaps`."""
+
+    def start(self) -> Self:
+        raise NotImplementedError
+
+    def stop(self) -> None:
+        raise NotImplementedError
+
+    def gaps(self, start_s: float, end_s: float) -> list[tuple[float, float]]:
+        raise NotImplementedError
+
+    def __enter__(self) -> Self:
+        return self.start()
+
+    def __exit__(self, *exc: object) -> None:
+        self.stop()
+
+    def settled_gaps(self, start_s: float, end_s: float) -> list[tuple[float, float]]:
+        """`gaps`, once the witness has had 0.1 s past ``end_s`` (and past now) to report
+        a stall that was still going on then."""
+        time.sleep(max(0.1, end_s + 0.1 - time.monotonic()))
+        return self.gaps(start_s, end_s)
+
+
+class StallWitness(_Witness):
     """The machine's stalls while it runs (`gaps`, `stalled_s`); with ``cpu``, the stalls
     of that one CPU (the witness pinned to it: `CpuStallWitnesses`)."""
 
@@ -52,7 +78,7 @@ class StallWitness:
         self._proc: subprocess.Popen[str] | None = None
         self._reader: threading.Thread | None = None
 
-    def start(self) -> StallWitness:
+    def start(self) -> Self:
         # Not niced: it must wake whenever the daemon's processes could run.
         pin = [] if self.cpu is None else [str(self.cpu)]
         self._proc = subprocess.Popen(
@@ -81,12 +107,6 @@ class StallWitness:
             self._proc.wait(5)
             self._proc = None
 
-    def __enter__(self) -> StallWitness:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
     def gaps(self, start_s: float, end_s: float) -> list[tuple[float, float]]:
         """The stalls overlapping ``start_s``..``end_s`` (time.monotonic()), clipped to it.
 
@@ -95,12 +115,6 @@ class StallWitness:
         with self._lock:
             gaps = list(self._gaps)
         return [(max(a, start_s), min(b, end_s)) for a, b in gaps if b > start_s and a < end_s]
-
-    def settled_gaps(self, start_s: float, end_s: float) -> list[tuple[float, float]]:
-        """`gaps`, once the witness has had 0.1 s past ``end_s`` (and past now) to report
-        a stall that was still going on then."""
-        time.sleep(max(0.1, end_s + 0.1 - time.monotonic()))
-        return self.gaps(start_s, end_s)
 
     def stalled_s(self, start_s: float, end_s: float) -> float:
         """How long the machine did not run between ``start_s`` and ``end_s``."""
@@ -128,7 +142,7 @@ def merged(gaps: list[tuple[float, float]]) -> list[tuple[float, float]]:
     return out
 
 
-class CpuStallWitnesses:
+class CpuStallWitnesses(_Witness):
     """A witness pinned to each CPU: when any one CPU stops running ordinary tasks.
 
     On the CI VM one CPU at a time can stop running its tasks for hundreds of ms (a
@@ -144,7 +158,7 @@ class CpuStallWitnesses:
         cpus = sorted(os.sched_getaffinity(0))
         self.witnesses = [StallWitness(cpu) for cpu in cpus]
 
-    def start(self) -> CpuStallWitnesses:
+    def start(self) -> Self:
         for witness in self.witnesses:
             witness.start()
         return self
@@ -153,20 +167,9 @@ class CpuStallWitnesses:
         for witness in self.witnesses:
             witness.stop()
 
-    def __enter__(self) -> CpuStallWitnesses:
-        return self.start()
-
-    def __exit__(self, *exc: object) -> None:
-        self.stop()
-
     def gaps(self, start_s: float, end_s: float) -> list[tuple[float, float]]:
         """The union of every CPU's stalls overlapping ``start_s``..``end_s``, clipped."""
         return merged([gap for w in self.witnesses for gap in w.gaps(start_s, end_s)])
-
-    def settled_gaps(self, start_s: float, end_s: float) -> list[tuple[float, float]]:
-        """`gaps` once each witness has had 0.1 s past ``end_s`` to report."""
-        time.sleep(max(0.1, end_s + 0.1 - time.monotonic()))
-        return self.gaps(start_s, end_s)
 
 
 _shared: StallWitness | None = None

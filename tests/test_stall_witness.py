@@ -10,15 +10,20 @@ import time
 from tests.stall_witness import CpuStallWitnesses, StallWitness, merged, stalled_within
 
 
+def stopped_for(pid: int, seconds: float) -> tuple[float, float]:
+    """Stop the process ``pid`` for ``seconds``; when that began and ended."""
+    start = time.monotonic()
+    os.kill(pid, signal.SIGSTOP)
+    time.sleep(seconds)
+    os.kill(pid, signal.SIGCONT)
+    return start, time.monotonic()
+
+
 def test_a_witness_that_was_not_run_reports_the_time_it_lost() -> None:
     # Stopping the witness's process is what a stalled machine does to every process.
     with StallWitness() as witness:
         assert witness._proc is not None
-        start = time.monotonic()
-        os.kill(witness._proc.pid, signal.SIGSTOP)
-        time.sleep(0.3)
-        os.kill(witness._proc.pid, signal.SIGCONT)
-        end = time.monotonic()
+        start, end = stopped_for(witness._proc.pid, 0.3)
         gaps = witness.settled_gaps(start, end)
         assert gaps, "the witness reported nothing"
         # At least the 0.3 s it was stopped; never more than the window asked about.
@@ -41,11 +46,7 @@ def test_one_stalled_cpu_is_seen_by_its_pinned_witness() -> None:
         stopped = witnesses.witnesses[-1]
         assert stopped._proc is not None
         assert os.sched_getaffinity(stopped._proc.pid) == {stopped.cpu}
-        start = time.monotonic()
-        os.kill(stopped._proc.pid, signal.SIGSTOP)
-        time.sleep(0.3)
-        os.kill(stopped._proc.pid, signal.SIGCONT)
-        end = time.monotonic()
+        start, end = stopped_for(stopped._proc.pid, 0.3)
         gaps = witnesses.settled_gaps(start, end)
         assert stalled_within(gaps, start, end) >= 0.29
         assert all(start <= a < b <= end for a, b in gaps)

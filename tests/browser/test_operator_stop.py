@@ -253,15 +253,13 @@ def time_to_zero(
     uno = sim.uno
     plant = uno.plant
     assert uno_pwm(server) != (0, 0), "the robot must be driving before the stop"
-    zero_at: list[float] = []
-    zero_mono: list[float] = []
+    zero_mono: list[float] = []  # when the Uno set 0/0 (its own time.monotonic())
     stopped = threading.Event()
     apply_pwm = plant.apply_pwm
 
     def traced_apply_pwm(left_pwm: int, right_pwm: int) -> None:
         apply_pwm(left_pwm, right_pwm)
         if (left_pwm, right_pwm) == (0, 0) and not stopped.is_set():
-            zero_at.append(time.time() - (time.monotonic() - uno.pwm_changed_s))
             zero_mono.append(uno.pwm_changed_s)
             stopped.set()
 
@@ -280,7 +278,8 @@ def time_to_zero(
                 time.sleep(0.005)
     finally:
         vars(plant).pop("apply_pwm", None)
-    assert zero_at, f"{what}: the Uno's PWM is still {uno_pwm(server)} 3 s later"
+    assert zero_mono, f"{what}: the Uno's PWM is still {uno_pwm(server)} 3 s later"
+    zero_at = start + (zero_mono[0] - start_mono)  # the wall clock, like the page's marks
     stopped_by_deadman = deadman_made_the_zero(uno, start_mono, zero_mono[0])
     marks = dict(trace.marks)
     if page is not None:
@@ -290,11 +289,11 @@ def time_to_zero(
         zero = page.evaluate("window.floornav.zeroSentWallMs")
         if zero is not None and zero / 1000 >= start:
             marks["page sent the zero"] = zero / 1000
-    marks["Uno PWM 0/0"] = zero_at[0]
+    marks["Uno PWM 0/0"] = zero_at
     steps = " · ".join(
         f"{name} +{(t - start) * 1000:.0f}" for name, t in sorted(marks.items(), key=lambda m: m[1])
     )
-    latency_ms = (zero_at[0] - start) * 1000
+    latency_ms = (zero_mono[0] - start_mono) * 1000
     measured[what] = latency_ms
     over = " (over the 100 ms target)" if latency_ms > STOP_TARGET_MS else ""
     print(f"\n{what}: PWM 0/0 after {latency_ms:.1f} ms{over} ({steps} ms)")
@@ -304,8 +303,7 @@ def time_to_zero(
     sent_ms = None if sent_s is None else (sent_s - start) * 1000
     acted = [marks[name] for name in DAEMON_ACTED if name in marks]
     acted_ms = (min(acted) - start) * 1000 if acted else None
-    end_mono = start_mono + latency_ms / 1000
-    end_mono = max(end_mono, start_mono + max(host_ms or 0.0, acted_ms or 0.0) / 1000)
+    end_mono = start_mono + max(latency_ms, host_ms or 0.0, acted_ms or 0.0) / 1000
     gaps = witness.settled_gaps(start_mono, end_mono)  # one wait for the witness
 
     def stalled_ms_until(until_ms: float | None, from_ms: float | None = None) -> float:
@@ -321,7 +319,7 @@ def time_to_zero(
         what,
         latency_ms,
         host_ms,
-        longest_gap_ms(trace.telemetry_at, start, zero_at[0]),
+        longest_gap_ms(trace.telemetry_at, start, zero_at),
         stalled_ms,
         stalled_ms_until(host_ms),
         stopped_by_deadman,
