@@ -166,6 +166,13 @@ class MappingConfig(StrictModel):
     """A cell is occupied above this log-odds (default: one sighting; raise it when
     perception leaves speckles of false obstacles)."""
     obstacle_band_m: Annotated[float, Field(gt=0.0, le=0.5)] = 0.03
+    free_evidence_range_m: Annotated[float, Field(gt=0.0, le=20.0)] = 2.0
+    """Floor seen farther than this from the camera gives the map no free evidence."""
+    obstacle_evidence_range_m: Annotated[float, Field(gt=0.0, le=20.0)] = 1.0
+    """A floor boundary farther than this from the camera gives the map no occupied
+    evidence: far away one image row spans centimetres of floor, so a far boundary is
+    misplaced by cells and a far perception miss paints a wall across open floor (the
+    robot looks again from closer before it gets there)."""
     evidence_half_distance_m: Annotated[float, Field(gt=0.0, le=10000.0)] = 10.0
     """Evidence halves per this much travel, never with time alone, so a standing robot
     keeps its map (10 m: what the old 30 s half-life gave at the 0.35 m/s cruise)."""

@@ -108,6 +108,8 @@ def occupancy_params(mapping: MappingConfig) -> OccupancyParams:
         free_threshold=mapping.free_threshold,
         occupied_threshold=mapping.occupied_threshold,
         obstacle_band_m=mapping.obstacle_band_m,
+        free_max_range_m=mapping.free_evidence_range_m,
+        occupied_max_range_m=mapping.obstacle_evidence_range_m,
         half_distance_m=mapping.evidence_half_distance_m,
         turn_radius_m=mapping.evidence_turn_radius_m,
         # The camera never sees under the robot; where the robot stands is floor.

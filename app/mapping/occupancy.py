@@ -12,7 +12,10 @@ One update takes a ground patch from inverse perspective mapping (a robot-frame
    cell is ``NOT_FLOOR`` (no floor before it: the obstacle's foot is outside the view)
    touches nothing. Why only a band: in a bird's-eye view everything standing on the floor
    is smeared away from the camera, so only the near edge of a ``NOT_FLOOR`` region (its
-   foot, the floor boundary) is where the obstacle really is.
+   foot, the floor boundary) is where the obstacle really is. Floor counts as free only
+   within ``free_max_range_m`` of the camera and a boundary as occupied only within
+   ``occupied_max_range_m`` (`OccupancyParams`): far away a row of the image spans
+   centimetres of floor, so only near boundaries are placed well.
 
    The rays are precomputed once per patch geometry (`build_polar_table`): for each of R
    rays the exact list of patch cells it crosses (a 4-connected grid traversal, so no ray
@@ -128,6 +131,13 @@ class OccupancyParams:
         obstacle sighting enough for "occupied" but ask two floor sightings for "free".
     obstacle_band_m : float, >= 0, thickness along a ray of the occupied band, from the
         first not-floor cell (which is always in it).
+    free_max_range_m, occupied_max_range_m : float, > 0 (``math.inf``: no limit), range
+        from the camera beyond which a frame's floor gives no free evidence and its floor
+        boundary no occupied evidence. Why: a mask's boundary is only good to a few image
+        rows, and a row covers more floor the farther it looks (on the simulated camera
+        1 cm at 1 m, 3 cm at 2 m, 5 cm at 2.5 m), so a far boundary lands cells away from
+        the obstacle and a far false one paints a wall across open floor. The robot
+        looks again from closer before it gets there.
     half_distance_m : float, > 0, travel that halves all evidence (``math.inf`` disables
         decay).
     turn_radius_m : float, >= 0, turning by an angle counts as this radius times the
@@ -147,6 +157,8 @@ class OccupancyParams:
     free_threshold: float = -0.5
     occupied_threshold: float = 0.5
     obstacle_band_m: float = 0.03
+    free_max_range_m: float = math.inf
+    occupied_max_range_m: float = math.inf
     half_distance_m: float = 10.0
     turn_radius_m: float = 0.10
     decay_step_m: float = 0.05
@@ -156,7 +168,8 @@ class OccupancyParams:
         values = {name: getattr(self, name) for name in self.__dataclass_fields__}
         for name, value in values.items():
             finite = isinstance(value, int | float) and math.isfinite(value)
-            if not (finite or (name == "half_distance_m" and value == math.inf)):
+            unbounded = name in ("half_distance_m", "free_max_range_m", "occupied_max_range_m")
+            if not (finite or (unbounded and value == math.inf)):
                 raise ValueError(f"OccupancyParams.{name}: expected a finite number, got {value!r}")
         if not (self.log_odds_free < 0 < self.log_odds_occupied):
             raise ValueError("OccupancyParams: need log_odds_free < 0 < log_odds_occupied")
@@ -167,10 +180,9 @@ class OccupancyParams:
                 "OccupancyParams: need clamp_min <= free_threshold <= occupied_threshold"
                 " <= clamp_max"
             )
-        if not self.half_distance_m > 0:
-            raise ValueError(
-                f"OccupancyParams.half_distance_m: must be > 0, got {self.half_distance_m}"
-            )
+        for name in ("half_distance_m", "free_max_range_m", "occupied_max_range_m"):
+            if not values[name] > 0:
+                raise ValueError(f"OccupancyParams.{name}: must be > 0, got {values[name]}")
         for name in ("obstacle_band_m", "turn_radius_m", "decay_step_m", "footprint_free_radius_m"):
             if values[name] < 0:
                 raise ValueError(f"OccupancyParams.{name}: must be >= 0, got {values[name]}")
@@ -466,6 +478,8 @@ def _cast_kernel(
     cells: NDArray[np.int32],
     range_m: NDArray[np.float32],
     band_m: float,
+    free_max_m: float,
+    occupied_max_m: float,
     labels: NDArray[np.uint8],
 ) -> None:
     for k in range(offsets.shape[0] - 1):
@@ -474,23 +488,31 @@ def _cast_kernel(
         for e in range(offsets[k], offsets[k + 1]):
             idx = cells[e]
             v = patch[idx]
+            r = range_m[e]
             if band_end < np.inf:
-                if range_m[e] >= band_end:
+                if r >= band_end or r > occupied_max_m:
                     break
                 if v == NOT_FLOOR:
                     labels[idx] = PATCH_OCCUPIED
             elif v == FLOOR:
-                labels[idx] = PATCH_FREE
+                # Floor past the free range still hides nothing: the ray goes on.
+                if r <= free_max_m:
+                    labels[idx] = PATCH_FREE
                 seen_floor = True
             elif v == NOT_FLOOR:
-                if not seen_floor:
+                if not seen_floor or r > occupied_max_m:
                     break
                 labels[idx] = PATCH_OCCUPIED
-                band_end = range_m[e] + band_m
+                band_end = r + band_m
 
 
 def cast_rays(
-    patch: NDArray[np.uint8], table: PolarTable, *, obstacle_band_m: float = 0.03
+    patch: NDArray[np.uint8],
+    table: PolarTable,
+    *,
+    obstacle_band_m: float = 0.03,
+    free_max_range_m: float = math.inf,
+    occupied_max_range_m: float = math.inf,
 ) -> NDArray[np.uint8]:
     """Free and occupied cells of one patch, in the robot frame (see the module docstring).
 
@@ -500,6 +522,9 @@ def cast_rays(
         ``table.patch_grid``.
     table : PolarTable from `build_polar_table` for this patch geometry and camera.
     obstacle_band_m : float >= 0, thickness of the occupied band along each ray.
+    free_max_range_m, occupied_max_range_m : float > 0, ranges from the camera beyond
+        which floor gives no free label and not-floor no occupied one (see
+        `OccupancyParams`); a ray still ends at its first not-floor cell, labelled or not.
 
     Returns
     -------
@@ -512,15 +537,31 @@ def cast_rays(
     >>> table = build_polar_table(grid, (0.0, 0.0))
     >>> cast_rays(patch, table, obstacle_band_m=0.015).ravel().tolist()  # camera at row 5
     [0, 2, 2, 1, 1]
+    >>> cast_rays(patch, table, obstacle_band_m=0.015, occupied_max_range_m=0.015).ravel().tolist()
+    [0, 0, 0, 1, 1]
+    >>> cast_rays(patch, table, obstacle_band_m=0.015, free_max_range_m=0.005).ravel().tolist()
+    [0, 2, 2, 0, 1]
     """
     check_patch(patch, table.patch_grid)
     if not (0 <= obstacle_band_m < math.inf):
         raise ValueError(f"obstacle_band_m: must be finite and >= 0, got {obstacle_band_m}")
-    return _cast_checked(patch, table, float(obstacle_band_m))
+    for name, value in (
+        ("free_max_range_m", free_max_range_m),
+        ("occupied_max_range_m", occupied_max_range_m),
+    ):
+        if not value > 0:
+            raise ValueError(f"{name}: must be > 0, got {value}")
+    return _cast_checked(
+        patch, table, float(obstacle_band_m), float(free_max_range_m), float(occupied_max_range_m)
+    )
 
 
 def _cast_checked(
-    patch: NDArray[np.uint8], table: PolarTable, obstacle_band_m: float
+    patch: NDArray[np.uint8],
+    table: PolarTable,
+    obstacle_band_m: float,
+    free_max_range_m: float = math.inf,
+    occupied_max_range_m: float = math.inf,
 ) -> NDArray[np.uint8]:
     labels = np.zeros(patch.size, dtype=np.uint8)
     _cast_kernel(
@@ -529,6 +570,8 @@ def _cast_checked(
         table.cells,
         table.range_m,
         obstacle_band_m,
+        free_max_range_m,
+        occupied_max_range_m,
         labels,
     )
     return labels.reshape(patch.shape)
@@ -922,7 +965,13 @@ class OccupancyGrid:
         check_patch(patch, patch_grid)
         table = self.polar_table(patch_grid, camera_xy_robot)
         decayed = self._advance(T_world_robot)
-        labels = _cast_checked(patch, table, float(self.params.obstacle_band_m))
+        labels = _cast_checked(
+            patch,
+            table,
+            float(self.params.obstacle_band_m),
+            float(self.params.free_max_range_m),
+            float(self.params.occupied_max_range_m),
+        )
         world_free, world_occ = fuse_patch_labels(
             self.log_odds, self.world_grid, labels, patch_grid, T_world_robot, self.params
         )

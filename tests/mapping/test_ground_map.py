@@ -21,13 +21,14 @@ from app.mapping.occupancy import FREE, OCCUPIED, UNKNOWN, OccupancyGrid
 from .test_calibration import HEIGHT, WIDTH, camera_homography
 
 
-def make_mapper() -> GroundMapper:
+def make_mapper(**mapping: float) -> GroundMapper:
     H_true = camera_homography()
     ground = np.array([[0.5, 0.3], [0.5, -0.3], [1.5, 0.5], [1.5, -0.5]])
     calibration = homography_from_point_pairs(
         apply_homography(H_true, ground), ground, (WIDTH, HEIGHT)
     )
-    return GroundMapper(calibration, MappingConfig(max_range_m=2.5), CameraConfig(x_m=0.0))
+    config = MappingConfig(max_range_m=2.5, **mapping)  # type: ignore[arg-type]
+    return GroundMapper(calibration, config, CameraConfig(x_m=0.0))
 
 
 def wall_mask(mapper: GroundMapper, wall_x_m: float) -> np.ndarray:
@@ -41,26 +42,40 @@ def wall_mask(mapper: GroundMapper, wall_x_m: float) -> np.ndarray:
 def test_wall_ahead_becomes_free_floor_then_an_occupied_band() -> None:
     mapper = make_mapper()
     pose = Pose2D(0.0, 0.0, 0.0)
+    # A wall within the obstacle evidence range (1 m by default).
     for t in range(3):
-        update = mapper.update(wall_mask(mapper, 1.2), pose, now_s=0.1 * t)
+        update = mapper.update(wall_mask(mapper, 0.9), pose, now_s=0.1 * t)
     patch = update.patch
     assert (patch == FLOOR).any() and (patch == NOT_FLOOR).any()
     cells = mapper.grid.classify()
     grid = mapper.grid.world_grid
-    row_col = grid.cell_of(np.array([[0.8, 0.0], [1.22, 0.0], [1.6, 0.0], [-0.5, 0.0]]))
+    row_col = grid.cell_of(np.array([[0.6, 0.0], [0.92, 0.0], [1.3, 0.0], [-0.5, 0.0]]))
     states = [int(cells[r, c]) for r, c in row_col]
     assert states == [FREE, OCCUPIED, UNKNOWN, UNKNOWN]  # behind the wall: not updated
+
+
+def test_a_far_wall_is_no_obstacle_until_the_robot_is_near() -> None:
+    mapper = make_mapper()
+    for t in range(3):
+        mapper.update(wall_mask(mapper, 1.4), Pose2D(0.0, 0.0, 0.0), now_s=0.1 * t)
+    grid = mapper.grid.world_grid
+    row_col = grid.cell_of(np.array([[0.8, 0.0], [1.42, 0.0]]))
+    assert [int(mapper.grid.classify()[r, c]) for r, c in row_col] == [FREE, UNKNOWN]
+    # From 0.9 m away the same wall is placed well enough to map.
+    for t in range(3, 6):
+        mapper.update(wall_mask(mapper, 0.9), Pose2D(0.5, 0.0, 0.0), now_s=0.1 * t)
+    assert [int(mapper.grid.classify()[r, c]) for r, c in row_col] == [FREE, OCCUPIED]
 
 
 def test_turned_robot_maps_into_the_world_frame() -> None:
     mapper = make_mapper()
     pose = Pose2D(1.0, 2.0, np.pi / 2)  # facing world +y
     for t in range(3):
-        mapper.update(wall_mask(mapper, 1.2), pose, now_s=0.1 * t)
+        mapper.update(wall_mask(mapper, 0.9), pose, now_s=0.1 * t)
     cells = mapper.grid.classify()
-    r, c = mapper.grid.world_grid.cell_of(np.array([[1.0, 2.8]]))[0]
+    r, c = mapper.grid.world_grid.cell_of(np.array([[1.0, 2.6]]))[0]
     assert cells[r, c] == FREE
-    r, c = mapper.grid.world_grid.cell_of(np.array([[1.0, 3.22]]))[0]
+    r, c = mapper.grid.world_grid.cell_of(np.array([[1.0, 2.92]]))[0]
     assert cells[r, c] == OCCUPIED
 
 
@@ -290,8 +305,10 @@ def test_a_plain_walls_foot_is_remembered_standing_and_kept_from_edge_probes() -
     """The left room's plain wall 1.5 m ahead: parallax sees nothing on it, but it runs
     from where the floor ends to past the horizon, so its foot is marked standing and
     the frontier search does not send the robot to probe it as an unproven edge."""
-    mapper, renderer, segmenter = sim_mapper(standing_by_horizon=True, parallax_floor=False)
-    plain, _, _ = sim_mapper(standing_by_horizon=False, parallax_floor=False)
+    # The wall is mapped from 1.5 m away (the default maps obstacles only within 1 m).
+    far = {"obstacle_evidence_range_m": 2.0}
+    mapper, renderer, segmenter = sim_mapper(standing_by_horizon=True, parallax_floor=False, **far)
+    plain, _, _ = sim_mapper(standing_by_horizon=False, parallax_floor=False, **far)
     pose = Pose2D(1.5, 3.0, math.pi)  # facing the wall at x = 0
     frame = renderer.render(pose)  # type: ignore[attr-defined]
     mask = segmenter.segment(frame.image).floor_mask  # type: ignore[attr-defined]
@@ -323,7 +340,11 @@ def test_a_plain_walls_foot_is_remembered_standing_and_kept_from_edge_probes() -
 def test_unsure_pixels_give_no_evidence_and_the_rest_fuses_as_without() -> None:
     """A deferred learned-floor pass: where it could have found floor the first pass's
     "not floor" must not become a wall (the pass, later, may call it floor)."""
-    plain, held_back = make_mapper(), make_mapper()
+    # Obstacles mapped out to 2 m: the cabinets 1.6 m ahead count.
+    plain, held_back = (
+        make_mapper(obstacle_evidence_range_m=2.0),
+        make_mapper(obstacle_evidence_range_m=2.0),
+    )
     pose = Pose2D(0.0, 0.0, 0.0)
     mask = wall_mask(plain, 1.2)  # the first pass stops at 1.2 m: the kitchen threshold
     rows = plain.calibration.ground_to_image(np.array([[1.2, 0.0], [1.6, 0.0]]))[:, 1]

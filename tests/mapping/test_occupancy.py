@@ -71,6 +71,40 @@ def test_wall_line_in_the_world_is_cell_exact() -> None:
     assert (grid.classify()[28:40, 10:30] == FREE).all()  # two floor sightings make free
 
 
+def test_evidence_only_within_its_ranges() -> None:
+    table = build_polar_table(PATCH, CAMERA)
+    # The wall at 0.6 m, past the obstacle range: the floor before it is free, the wall
+    # gives nothing, and nothing behind it is touched either.
+    labels = cast_rays(wall_patch(), table, obstacle_band_m=0.025, occupied_max_range_m=0.5)
+    np.testing.assert_array_equal(labels[40:] == PATCH_FREE, np.ones((60, 100), bool))
+    assert (labels[:40] == PATCH_UNTOUCHED).all()
+    # Inside both ranges: the same labels as without limits.
+    unlimited = cast_rays(wall_patch(), table, obstacle_band_m=0.025)
+    within = cast_rays(
+        wall_patch(), table, obstacle_band_m=0.025, free_max_range_m=2.0, occupied_max_range_m=2.0
+    )
+    np.testing.assert_array_equal(within, unlimited)
+    # Floor past the free range gives no evidence but hides nothing: the wall behind it
+    # (straight ahead, rows 38-39 at x 0.60-0.62) is still occupied.
+    labels = cast_rays(wall_patch(), table, obstacle_band_m=0.025, free_max_range_m=0.3)
+    x, y = PATCH.cell_centers()
+    near = np.hypot(x, y) < 0.29
+    far = (np.hypot(x, y) > 0.31) & (x < 0.6)
+    assert (labels[near] == PATCH_FREE).all() and (labels[far] == PATCH_UNTOUCHED).all()
+    assert (labels[38:40, 45:55] == PATCH_OCCUPIED).all()
+    # In the world: a wall seen from 0.6 m away with a 0.5 m obstacle range is no obstacle.
+    grid = OccupancyGrid(WORLD, replace(NO_DECAY, occupied_max_range_m=0.5))
+    summary = grid.update(wall_patch(), PATCH, Pose2D(), CAMERA)
+    assert summary.world_occupied == 0 and summary.patch_occupied == 0
+    assert not (grid.log_odds > 0).any() and (grid.log_odds[28:40, 10:30] < 0).all()
+    for name in ("free_max_range_m", "occupied_max_range_m"):
+        with pytest.raises(ValueError, match=name):
+            OccupancyParams(**{name: 0.0})
+        with pytest.raises(ValueError, match=name):
+            cast_rays(wall_patch(), table, **{name: -1.0})
+        assert getattr(OccupancyParams(**{name: math.inf}), name) == math.inf
+
+
 def test_unseen_never_updates_and_does_not_stop_rays() -> None:
     grid = OccupancyGrid(WORLD, NO_DECAY)
     unseen = np.full(PATCH.shape, UNSEEN, np.uint8)

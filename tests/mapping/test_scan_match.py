@@ -326,7 +326,11 @@ def room_mask(mapper: GroundMapper, T_world_robot: Pose2D) -> NDArray[np.bool_]:
 
 
 def sim_mapper() -> GroundMapper:
-    config = FloornavConfig(mapping=MappingConfig(scan_matching=True))
+    # The walls are mapped from the whole view (3 m), as the matcher's scans see them.
+    mapping = MappingConfig(
+        scan_matching=True, free_evidence_range_m=3.0, obstacle_evidence_range_m=3.0
+    )
+    config = FloornavConfig(mapping=mapping)
     return GroundMapper(sim_floor_calibration(camera_model(config)), config.mapping, config.camera)
 
 
