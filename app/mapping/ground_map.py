@@ -660,7 +660,9 @@ class GroundMapper:
             # Geometry over memory too: known floor behind a standing surface is out of
             # sight, not floor seen, so the floor along those rays ends at its foot.
             patch[birdseye_floor_patch(cut_px, self.birdseye) == FLOOR] = NOT_FLOOR
-        summary = self.grid.update(patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot)
+        summary = self.grid.update(
+            patch, self.birdseye.grid, T_world_robot, self.camera_xy_robot, standing_cells
+        )
         return MapUpdate(patch, summary, corrected, correction, match_s, job, zone_known_floor)
 
     def _zone_cells(self, safe_zone_px: NDArray[np.bool_]) -> NDArray[np.bool_]:

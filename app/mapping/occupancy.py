@@ -480,17 +480,20 @@ def _cast_kernel(
     band_m: float,
     free_max_m: float,
     occupied_max_m: float,
+    standing: NDArray[np.bool_],
     labels: NDArray[np.uint8],
 ) -> None:
+    has_standing = standing.shape[0] > 0
     for k in range(offsets.shape[0] - 1):
         seen_floor = False
         band_end = np.inf
+        band_max = occupied_max_m
         for e in range(offsets[k], offsets[k + 1]):
             idx = cells[e]
             v = patch[idx]
             r = range_m[e]
             if band_end < np.inf:
-                if r >= band_end or r > occupied_max_m:
+                if r >= band_end or r > band_max:
                     break
                 if v == NOT_FLOOR:
                     labels[idx] = PATCH_OCCUPIED
@@ -500,7 +503,10 @@ def _cast_kernel(
                     labels[idx] = PATCH_FREE
                 seen_floor = True
             elif v == NOT_FLOOR:
-                if not seen_floor or r > occupied_max_m:
+                # What geometry saw standing is mapped as far as floor is.
+                if has_standing and standing[idx]:
+                    band_max = max(occupied_max_m, free_max_m)
+                if not seen_floor or r > band_max:
                     break
                 labels[idx] = PATCH_OCCUPIED
                 band_end = r + band_m
@@ -513,6 +519,7 @@ def cast_rays(
     obstacle_band_m: float = 0.03,
     free_max_range_m: float = math.inf,
     occupied_max_range_m: float = math.inf,
+    standing: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.uint8]:
     """Free and occupied cells of one patch, in the robot frame (see the module docstring).
 
@@ -525,6 +532,10 @@ def cast_rays(
     free_max_range_m, occupied_max_range_m : float > 0, ranges from the camera beyond
         which floor gives no free label and not-floor no occupied one (see
         `OccupancyParams`); a ray still ends at its first not-floor cell, labelled or not.
+    standing : (rows, cols) bool or None, not-floor cells geometry saw standing (parallax,
+        the horizon): a ray whose first not-floor cell is one of them gets its occupied
+        band out to the larger of the two ranges. The range limits are for colour
+        boundaries, whose place is only as good as the mask's rows.
 
     Returns
     -------
@@ -551,9 +562,27 @@ def cast_rays(
     ):
         if not value > 0:
             raise ValueError(f"{name}: must be > 0, got {value}")
+    check_standing(standing, table.patch_grid)
     return _cast_checked(
-        patch, table, float(obstacle_band_m), float(free_max_range_m), float(occupied_max_range_m)
+        patch,
+        table,
+        float(obstacle_band_m),
+        float(free_max_range_m),
+        float(occupied_max_range_m),
+        standing,
     )
+
+
+def check_standing(standing: NDArray[np.bool_] | None, patch_grid: GroundGrid) -> None:
+    if standing is not None and (
+        not isinstance(standing, np.ndarray)
+        or standing.dtype != np.bool_
+        or standing.shape != patch_grid.shape
+    ):
+        raise ValueError(f"standing: expected a bool array of shape {patch_grid.shape}")
+
+
+_NO_STANDING = np.zeros(0, dtype=np.bool_)
 
 
 def _cast_checked(
@@ -562,6 +591,7 @@ def _cast_checked(
     obstacle_band_m: float,
     free_max_range_m: float = math.inf,
     occupied_max_range_m: float = math.inf,
+    standing: NDArray[np.bool_] | None = None,
 ) -> NDArray[np.uint8]:
     labels = np.zeros(patch.size, dtype=np.uint8)
     _cast_kernel(
@@ -572,6 +602,7 @@ def _cast_checked(
         obstacle_band_m,
         free_max_range_m,
         occupied_max_range_m,
+        _NO_STANDING if standing is None else np.ascontiguousarray(standing).ravel(),
         labels,
     )
     return labels.reshape(patch.shape)
@@ -942,6 +973,7 @@ class OccupancyGrid:
         patch_grid: GroundGrid,
         T_world_robot: Pose2D,
         camera_xy_robot: tuple[float, float],
+        standing: NDArray[np.bool_] | None = None,
     ) -> UpdateSummary:
         """Fuse one robot-frame ground patch seen at ``T_world_robot``; the travel from the
         previous update's pose decays the evidence first (see the module docstring).
@@ -954,6 +986,8 @@ class OccupancyGrid:
         T_world_robot : Pose2D, the robot's pose in the world when the frame was taken.
         camera_xy_robot : (x, y) metres, the camera's position on the floor in the robot
             frame (the rays' origin).
+        standing : (patch_grid.rows, patch_grid.cols) bool or None, not-floor cells
+            geometry saw standing: mapped out to the free range (see `cast_rays`).
 
         Returns
         -------
@@ -963,6 +997,7 @@ class OccupancyGrid:
         check_cell_sizes(patch_grid, self.world_grid)
         check_pose(T_world_robot)
         check_patch(patch, patch_grid)
+        check_standing(standing, patch_grid)
         table = self.polar_table(patch_grid, camera_xy_robot)
         decayed = self._advance(T_world_robot)
         labels = _cast_checked(
@@ -971,6 +1006,7 @@ class OccupancyGrid:
             float(self.params.obstacle_band_m),
             float(self.params.free_max_range_m),
             float(self.params.occupied_max_range_m),
+            standing,
         )
         world_free, world_occ = fuse_patch_labels(
             self.log_odds, self.world_grid, labels, patch_grid, T_world_robot, self.params

@@ -92,11 +92,31 @@ def test_evidence_only_within_its_ranges() -> None:
     far = (np.hypot(x, y) > 0.31) & (x < 0.6)
     assert (labels[near] == PATCH_FREE).all() and (labels[far] == PATCH_UNTOUCHED).all()
     assert (labels[38:40, 45:55] == PATCH_OCCUPIED).all()
+    # What geometry saw standing is mapped as far as floor is: the same wall, flagged
+    # standing, gets its band back (here the free range is unlimited).
+    standing = wall_patch() == NOT_FLOOR
+    labels = cast_rays(
+        wall_patch(), table, obstacle_band_m=0.025, occupied_max_range_m=0.5, standing=standing
+    )
+    np.testing.assert_array_equal(labels, unlimited)
+    labels = cast_rays(
+        wall_patch(),
+        table,
+        obstacle_band_m=0.025,
+        free_max_range_m=0.55,
+        occupied_max_range_m=0.5,
+        standing=standing,
+    )
+    assert not (labels == PATCH_OCCUPIED).any()
+    with pytest.raises(ValueError, match="standing"):
+        cast_rays(wall_patch(), table, standing=standing[1:])
     # In the world: a wall seen from 0.6 m away with a 0.5 m obstacle range is no obstacle.
     grid = OccupancyGrid(WORLD, replace(NO_DECAY, occupied_max_range_m=0.5))
     summary = grid.update(wall_patch(), PATCH, Pose2D(), CAMERA)
     assert summary.world_occupied == 0 and summary.patch_occupied == 0
     assert not (grid.log_odds > 0).any() and (grid.log_odds[28:40, 10:30] < 0).all()
+    summary = grid.update(wall_patch(), PATCH, Pose2D(), CAMERA, standing=standing)
+    assert summary.world_occupied == 20 and (grid.log_odds[27, 10:30] > 0).all()
     for name in ("free_max_range_m", "occupied_max_range_m"):
         with pytest.raises(ValueError, match=name):
             OccupancyParams(**{name: 0.0})
