@@ -562,7 +562,7 @@ def cast_rays(
     ):
         if not value > 0:
             raise ValueError(f"{name}: must be > 0, got {value}")
-    check_standing(standing, table.patch_grid)
+    _check_standing(standing, table.patch_grid)
     return _cast_checked(
         patch,
         table,
@@ -573,7 +573,8 @@ def cast_rays(
     )
 
 
-def check_standing(standing: NDArray[np.bool_] | None, patch_grid: GroundGrid) -> None:
+def _check_standing(standing: NDArray[np.bool_] | None, patch_grid: GroundGrid) -> None:
+    """Raise ValueError unless ``standing`` is None or a bool raster of the patch's shape."""
     if standing is not None and (
         not isinstance(standing, np.ndarray)
         or standing.dtype != np.bool_
@@ -997,7 +998,7 @@ class OccupancyGrid:
         check_cell_sizes(patch_grid, self.world_grid)
         check_pose(T_world_robot)
         check_patch(patch, patch_grid)
-        check_standing(standing, patch_grid)
+        _check_standing(standing, patch_grid)
         table = self.polar_table(patch_grid, camera_xy_robot)
         decayed = self._advance(T_world_robot)
         labels = _cast_checked(
