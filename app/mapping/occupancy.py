@@ -590,9 +590,9 @@ def _cast_checked(
     patch: NDArray[np.uint8],
     table: PolarTable,
     obstacle_band_m: float,
-    free_max_range_m: float = math.inf,
-    occupied_max_range_m: float = math.inf,
-    standing: NDArray[np.bool_] | None = None,
+    free_max_range_m: float,
+    occupied_max_range_m: float,
+    standing: NDArray[np.bool_] | None,
 ) -> NDArray[np.uint8]:
     labels = np.zeros(patch.size, dtype=np.uint8)
     _cast_kernel(
