@@ -173,6 +173,11 @@ class MappingConfig(StrictModel):
     evidence: far away one image row spans centimetres of floor, so a far boundary is
     misplaced by cells and a far perception miss paints a wall across open floor (the
     robot looks again from closer before it gets there)."""
+    far_boundary_margin_m: Annotated[float, Field(ge=0.0, le=2.0)] = 0.25
+    """Floor within this of a boundary beyond ``obstacle_evidence_range_m`` gives no free
+    evidence either: that boundary is misplaced by about one perception row (the
+    network's output rows span about 0.22 m of floor at 2 m on the simulated camera), and
+    free cells leaking past a wall the map does not hold yet are frontiers behind it."""
     evidence_half_distance_m: Annotated[float, Field(gt=0.0, le=10000.0)] = 10.0
     """Evidence halves per this much travel, never with time alone, so a standing robot
     keeps its map (10 m: what the old 30 s half-life gave at the 0.35 m/s cruise)."""

@@ -110,6 +110,7 @@ def occupancy_params(mapping: MappingConfig) -> OccupancyParams:
         obstacle_band_m=mapping.obstacle_band_m,
         free_max_range_m=mapping.free_evidence_range_m,
         occupied_max_range_m=mapping.obstacle_evidence_range_m,
+        far_boundary_margin_m=mapping.far_boundary_margin_m,
         half_distance_m=mapping.evidence_half_distance_m,
         turn_radius_m=mapping.evidence_turn_radius_m,
         # The camera never sees under the robot; where the robot stands is floor.
@@ -988,13 +989,15 @@ class GroundMapper:
         """What a frontier search reads, copied (~1 ms; in the thread that runs
         `update`): the search itself (`search_frontiers`) may then run in any thread."""
         probe_cells = self.frontier_probe_cells() if self.mapping.frontier_probe_edges else None
+        classes = self.grid.classify()
         return FrontierInputs(
-            self.grid.classify(),
+            classes,
             self.grid.world_grid,
             (T_world_robot.x_m, T_world_robot.y_m),
             self.frontier_params,
             probe_cells,
             self.given_up.no_frontier.copy(),
+            self.grid.forgotten(classes),
         )
 
     def frontier_probe_cells(self) -> NDArray[np.bool_]:
@@ -1029,6 +1032,7 @@ class FrontierInputs(NamedTuple):
     params: FrontierParams
     probe_cells: NDArray[np.bool_] | None
     no_frontier: NDArray[np.bool_] | None = None
+    forgotten: NDArray[np.bool_] | None = None
 
 
 def search_frontiers(inputs: FrontierInputs) -> FrontierSearch:
@@ -1040,6 +1044,7 @@ def search_frontiers(inputs: FrontierInputs) -> FrontierSearch:
         inputs.params,
         probe_cells=inputs.probe_cells,
         no_frontier=inputs.no_frontier,
+        forgotten=inputs.forgotten,
     )
 
 

@@ -19,6 +19,9 @@ crash never leaves half a map). It holds a `SavedMap`:
                        parallax (`app.mapping.floor_memory`)
 ``floor_appearances``  optional (k, 4) float32, learned floor colours (scaled CIELAB)
                        and the cells behind each; both or neither
+``known_once``         optional (rows, cols) uint8, 1 = the cell was once free or
+                       occupied (`OccupancyGrid.known_once`); absent: what the map
+                       knows now
 =====================  ==========================================================
 
 `load_map` checks everything it reads and raises `MapFileError` with the reason; it
@@ -103,6 +106,11 @@ def map_arrays(snapshot: SavedMap) -> dict[str, NDArray[np.generic]]:
                     snapshot.floor_memory.appearances, dtype=np.float32
                 ),
             }
+        ),
+        **(
+            {}
+            if snapshot.known_once is None
+            else {"known_once": np.asarray(snapshot.known_once, dtype=np.uint8)}
         ),
     }
 
@@ -233,6 +241,15 @@ def _read_map(
     x_m, y_m, theta_rad = floats("pose", (3,))
     travelled = float(floats("travelled_m", ()))
     memory = _read_floor_memory(archive, read, path, grid)
+    known_once = None
+    if "known_once.npy" in archive.namelist():
+        known = read("known_once")
+        if known.dtype != np.uint8 or known.shape != grid.shape or int(known.max(initial=0)) > 1:
+            raise MapFileError(
+                f"{path}: 'known_once' must be uint8 0/1 of shape {grid.shape}, got"
+                f" {known.dtype} {known.shape}"
+            )
+        known_once = np.asarray(known, dtype=np.bool_)
     try:
         return SavedMap(
             log_odds=np.asarray(log_odds, dtype=np.float32),
@@ -242,6 +259,7 @@ def _read_map(
             T_world_robot=Pose2D(float(x_m), float(y_m), float(theta_rad)),
             travelled_m=travelled,
             floor_memory=memory,
+            known_once=known_once,
         )
     except ValueError as exc:
         raise MapFileError(f"{path}: not a usable map ({exc})") from exc

@@ -79,6 +79,21 @@ def test_save_then_load_gives_the_same_map_exactly(tmp_path: Path, snapshot: Sav
     save_map(again, fresh.snapshot())
     np.testing.assert_array_equal(load_map(again).log_odds, snapshot.log_odds)
 
+
+def test_the_cells_known_once_survive_a_save(tmp_path: Path, snapshot: SavedMap) -> None:
+    assert snapshot.known_once is not None and snapshot.known_once.any()  # it decayed
+    path = tmp_path / "known.npz"
+    save_map(path, snapshot)
+    loaded = load_map(path)
+    assert loaded.known_once is not None
+    np.testing.assert_array_equal(loaded.known_once, snapshot.known_once)
+    # A file from before the layer loads without it; a bad layer is refused.
+    write_npz(tmp_path / "old.npz", with_changes(snapshot, known_once=None))
+    assert load_map(tmp_path / "old.npz").known_once is None
+    write_npz(tmp_path / "bad.npz", with_changes(snapshot, known_once=np.full((60, 40), 2, "u1")))
+    with pytest.raises(MapFileError, match="'known_once' must be uint8 0/1"):
+        load_map(tmp_path / "bad.npz")
+
     # Saving over an existing map replaces it.
     save_map(path, OccupancyGrid(WORLD).snapshot())
     assert not load_map(path).log_odds.any()

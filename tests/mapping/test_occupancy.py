@@ -125,6 +125,39 @@ def test_evidence_only_within_its_ranges() -> None:
         assert getattr(OccupancyParams(**{name: math.inf}), name) == math.inf
 
 
+def test_floor_just_before_an_unmapped_boundary_is_not_free() -> None:
+    table = build_polar_table(PATCH, CAMERA)
+    x, y = PATCH.cell_centers()
+    # Along each ray the wall (x >= 0.6) starts at range 0.6 / cos(bearing).
+    boundary_r = 0.6 * np.hypot(x, y) / np.maximum(x, 1e-9)
+    # Rays that leave the patch's sides before the wall have no boundary: leave them out.
+    reaches_wall = np.abs(y) * 0.6 / np.maximum(x, 1e-9) < 0.45
+    # The wall at 0.6 m is past the 0.5 m obstacle range: floor within 0.1 m of it (along
+    # the ray) gives no free label; nearer floor still does.
+    labels = cast_rays(wall_patch(), table, occupied_max_range_m=0.5, far_boundary_margin_m=0.1)
+    r = np.hypot(x, y)
+    floor = x < 0.6
+    # (A cell's range is where its ray enters it: up to a cell's diagonal off its centre.)
+    sure_free = floor & (r < boundary_r - 0.1 - 0.015)
+    sure_out = floor & reaches_wall & (r > boundary_r - 0.1 + 0.015)
+    assert sure_free.sum() > 3000 and sure_out.sum() > 600
+    assert (labels[sure_free] == PATCH_FREE).all()
+    assert (labels[sure_out] == PATCH_UNTOUCHED).all() and (labels[~floor] == 0).all()
+    # A boundary within the obstacle range is mapped: the margin changes nothing there.
+    mapped = cast_rays(wall_patch(), table, obstacle_band_m=0.025, far_boundary_margin_m=0.1)
+    np.testing.assert_array_equal(mapped, cast_rays(wall_patch(), table, obstacle_band_m=0.025))
+    # Nor does it change rays that end without a boundary (floor to the patch's edge).
+    open_floor = np.full(PATCH.shape, FLOOR, np.uint8)
+    np.testing.assert_array_equal(
+        cast_rays(open_floor, table, occupied_max_range_m=0.5, far_boundary_margin_m=0.1),
+        np.full(PATCH.shape, PATCH_FREE, np.uint8),
+    )
+    with pytest.raises(ValueError, match="far_boundary_margin_m"):
+        cast_rays(wall_patch(), table, far_boundary_margin_m=-0.1)
+    with pytest.raises(ValueError, match="far_boundary_margin_m"):
+        OccupancyParams(far_boundary_margin_m=-0.1)
+
+
 def test_unseen_never_updates_and_does_not_stop_rays() -> None:
     grid = OccupancyGrid(WORLD, NO_DECAY)
     unseen = np.full(PATCH.shape, UNSEEN, np.uint8)
@@ -273,6 +306,48 @@ def test_driving_n_half_distances_halves_the_evidence_n_times() -> None:
     assert decays == 32 and grid.travelled_m == 2.0  # path length, not displacement
     np.testing.assert_allclose(grid.log_odds, before / 4, rtol=1e-5)
     assert decay_factor(0.5, 1.0) == pytest.approx(math.sqrt(0.5))
+
+
+def test_decay_forgets_cells_but_remembers_they_were_explored() -> None:
+    params = OccupancyParams(obstacle_band_m=0.025, half_distance_m=1.0, decay_step_m=0.05)
+    grid = OccupancyGrid(WORLD, params)
+    for _ in range(3):
+        grid.update(wall_patch(), PATCH, Pose2D(), CAMERA)
+    known = grid.classify() != UNKNOWN
+    assert known.sum() > 100 and not grid.known_once.any()  # nothing decayed yet
+    assert not grid.forgotten().any()
+    unseen = np.full(PATCH.shape, UNSEEN, np.uint8)
+    grid.update(unseen, PATCH, Pose2D(0.0, 0.0, 0.0), CAMERA)
+    grid.update(unseen, PATCH, Pose2D(-0.9, 0.0, 0.0), CAMERA)  # behind: sees nothing new
+    grid.update(unseen, PATCH, Pose2D(0.0, 0.0, 0.0), CAMERA)  # 1.8 m: 0.29 of it is left
+    np.testing.assert_array_equal(grid.known_once, known)
+    faded = known & (grid.classify() == UNKNOWN)
+    assert faded.sum() > 50
+    np.testing.assert_array_equal(grid.forgotten(), faded)
+    # Seeing the wall again makes its cells known: no longer forgotten.
+    for _ in range(3):
+        grid.update(wall_patch(), PATCH, Pose2D(), CAMERA)
+    assert not grid.forgotten().any()
+    # The snapshot carries the layer, with the pending travel's decay marked too.
+    params = replace(params, decay_step_m=10.0)
+    pending = OccupancyGrid(WORLD, params)
+    for _ in range(3):
+        pending.update(wall_patch(), PATCH, Pose2D(), CAMERA)
+    pending.update(unseen, PATCH, Pose2D(3.0, 0.0, 0.0), CAMERA)  # below the decay step
+    assert not pending.known_once.any()
+    snapshot = pending.snapshot()
+    assert snapshot.known_once is not None and not snapshot.known_once.flags.writeable
+    np.testing.assert_array_equal(snapshot.known_once, known)
+    restored = OccupancyGrid(WORLD, params)
+    restored.restore(snapshot)
+    np.testing.assert_array_equal(restored.forgotten(), known & (snapshot.classify() == UNKNOWN))
+    restored.reset()
+    assert not restored.known_once.any()
+    # A map saved without the layer: what it knows now counts as known once.
+    restored.restore(replace(snapshot, known_once=None))
+    np.testing.assert_array_equal(restored.known_once, snapshot.classify() != UNKNOWN)
+    with pytest.raises(ValueError, match=r"known_once: expected bool of shape \(60, 40\)"):
+        replace(snapshot, known_once=np.zeros((60, 40), np.uint8))
 
 
 def test_a_jittering_pose_never_adds_up_to_travel() -> None:
