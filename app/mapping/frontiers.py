@@ -309,28 +309,18 @@ def footprint_mask(
 
 
 def frontier_mask(
-    cells: NDArray[np.int8],
-    *,
-    adjacency: int = 4,
-    exclude: NDArray[np.bool_] | None = None,
-    forgotten: NDArray[np.bool_] | None = None,
+    cells: NDArray[np.int8], *, adjacency: int = 4, exclude: NDArray[np.bool_] | None = None
 ) -> NDArray[np.bool_]:
-    """(rows, cols) bool: ``FREE`` cells with an ``UNKNOWN`` 4- (or 8-) neighbour that is
-    not ``forgotten``, minus ``exclude``. Cells beyond the raster's edge are not unknown.
+    """(rows, cols) bool: ``FREE`` cells with an ``UNKNOWN`` 4- (or 8-) neighbour, minus
+    ``exclude``. Cells beyond the raster's edge are not unknown.
 
     >>> c = np.array([[-1, -1, -1], [0, 0, 0], [0, 0, 1]], np.int8)
     >>> frontier_mask(c).astype(int).tolist()
     [[0, 0, 0], [1, 1, 1], [0, 0, 0]]
-    >>> gone = np.array([[1, 1, 0], [0, 0, 0], [0, 0, 0]], bool)
-    >>> frontier_mask(c, forgotten=gone).astype(int).tolist()
-    [[0, 0, 0], [0, 0, 1], [0, 0, 0]]
     """
     if adjacency not in (4, 8):
         raise ValueError(f"adjacency: must be 4 or 8, got {adjacency}")
-    if forgotten is not None and forgotten.shape != cells.shape:
-        raise ValueError(f"forgotten: shape {forgotten.shape} is not the cells' {cells.shape}")
-    unexplored = cells == UNKNOWN if forgotten is None else (cells == UNKNOWN) & ~forgotten
-    unknown = np.pad(unexplored, 1, constant_values=False)
+    unknown = np.pad(cells == UNKNOWN, 1, constant_values=False)
     rows, cols = cells.shape
     near = np.zeros(cells.shape, dtype=bool)
     for dr in (-1, 0, 1):
@@ -478,7 +468,6 @@ def find_frontiers(
     robot_heading_rad: float | None = None,
     probe_cells: NDArray[np.bool_] | None = None,
     no_frontier: NDArray[np.bool_] | None = None,
-    forgotten: NDArray[np.bool_] | None = None,
 ) -> FrontierSearch:
     """Frontier clusters of a classified grid and the goal to explore next.
 
@@ -495,9 +484,6 @@ def find_frontiers(
     no_frontier : (rows, cols) bool, cells that make no frontier (around goals given up).
         They stay what they are: counting them as free floor instead put a new frontier
         on their rim, a step further into the unknown, and the next goal there.
-    forgotten : (rows, cols) bool, unknown cells that were once known
-        (`OccupancyGrid.forgotten`): explored already, so no frontier faces them. They
-        stay unknown otherwise (not traversable).
 
     Returns
     -------
@@ -517,9 +503,7 @@ def find_frontiers(
     excluded = footprint if no_frontier is None else footprint | no_frontier
     if params.exclude_radius_m > params.robot_radius_m:
         excluded = excluded | footprint_mask(grid, robot_xy, params.exclude_radius_m)
-    frontier = frontier_mask(
-        known, adjacency=params.frontier_adjacency, exclude=excluded, forgotten=forgotten
-    )
+    frontier = frontier_mask(known, adjacency=params.frontier_adjacency, exclude=excluded)
     traversable, weight = _traversable(known == FREE, occupied, footprint, cell_m, params)
 
     (row, col) = (int(v) for v in grid.cell_of(np.array([robot_xy]))[0])
@@ -572,16 +556,7 @@ def find_frontiers(
             None
             if probe_cells is None
             else _probe_goal(
-                known,
-                grid,
-                probe_cells,
-                distance,
-                parent,
-                params,
-                (row, col),
-                footprint,
-                excluded,
-                forgotten,
+                known, grid, probe_cells, distance, parent, params, (row, col), footprint, excluded
             )
         )
         if probe is not None:
@@ -641,7 +616,6 @@ def _probe_goal(
     robot_cell: tuple[int, int],
     footprint: NDArray[np.bool_],
     excluded: NDArray[np.bool_],
-    forgotten: NDArray[np.bool_] | None,
 ) -> FrontierGoal | None:
     """The nearest reachable cell from which to look at the unproven edge that stands
     between the robot and the nearest frontier it cannot reach (module docstring).
@@ -657,9 +631,7 @@ def _probe_goal(
     relaxed = known.copy()
     relaxed[edge] = FREE
     reachable = np.isfinite(distance)
-    frontier = frontier_mask(
-        relaxed, adjacency=params.frontier_adjacency, exclude=excluded, forgotten=forgotten
-    )
+    frontier = frontier_mask(relaxed, adjacency=params.frontier_adjacency, exclude=excluded)
     frontier &= ~reachable
     labels, n_labels = ndimage.label(frontier, structure=np.ones((3, 3), dtype=bool))
     if n_labels == 0:

@@ -987,17 +987,17 @@ class GroundMapper:
 
     def frontier_inputs(self, T_world_robot: Pose2D) -> FrontierInputs:
         """What a frontier search reads, copied (~1 ms; in the thread that runs
-        `update`): the search itself (`search_frontiers`) may then run in any thread."""
+        `update`): the search itself (`search_frontiers`) may then run in any thread. It
+        plans on the remembered map (`OccupancyGrid.remembered_classes`): floor that has
+        faded is explored, and still the way on and home."""
         probe_cells = self.frontier_probe_cells() if self.mapping.frontier_probe_edges else None
-        classes = self.grid.classify()
         return FrontierInputs(
-            classes,
+            self.grid.remembered_classes(),
             self.grid.world_grid,
             (T_world_robot.x_m, T_world_robot.y_m),
             self.frontier_params,
             probe_cells,
             self.given_up.no_frontier.copy(),
-            self.grid.forgotten(classes),
         )
 
     def frontier_probe_cells(self) -> NDArray[np.bool_]:
@@ -1032,7 +1032,6 @@ class FrontierInputs(NamedTuple):
     params: FrontierParams
     probe_cells: NDArray[np.bool_] | None
     no_frontier: NDArray[np.bool_] | None = None
-    forgotten: NDArray[np.bool_] | None = None
 
 
 def search_frontiers(inputs: FrontierInputs) -> FrontierSearch:
@@ -1044,7 +1043,6 @@ def search_frontiers(inputs: FrontierInputs) -> FrontierSearch:
         inputs.params,
         probe_cells=inputs.probe_cells,
         no_frontier=inputs.no_frontier,
-        forgotten=inputs.forgotten,
     )
 
 

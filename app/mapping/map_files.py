@@ -19,9 +19,9 @@ crash never leaves half a map). It holds a `SavedMap`:
                        parallax (`app.mapping.floor_memory`)
 ``floor_appearances``  optional (k, 4) float32, learned floor colours (scaled CIELAB)
                        and the cells behind each; both or neither
-``known_once``         optional (rows, cols) uint8, 1 = the cell was once free or
-                       occupied (`OccupancyGrid.known_once`); absent: what the map
-                       knows now
+``remembered``         optional (rows, cols) int8, each cell's last known class
+                       before decay faded it (`OccupancyGrid.remembered`: -1 never
+                       known, 0 free, 1 occupied); absent: what the map knows now
 =====================  ==========================================================
 
 `load_map` checks everything it reads and raises `MapFileError` with the reason; it
@@ -56,7 +56,7 @@ from numpy.typing import NDArray
 from app.fileio import write_bytes_atomic
 from app.mapping.floor_memory import FloorMemoryState
 from app.mapping.frames import GroundGrid, Pose2D, describe_grid, same_geometry
-from app.mapping.occupancy import FREE, OCCUPIED, UNKNOWN, SavedMap
+from app.mapping.occupancy import CLASSES, FREE, OCCUPIED, UNKNOWN, SavedMap
 
 MAP_KIND = "floornav-map"
 FORMAT_VERSION = 1
@@ -109,8 +109,8 @@ def map_arrays(snapshot: SavedMap) -> dict[str, NDArray[np.generic]]:
         ),
         **(
             {}
-            if snapshot.known_once is None
-            else {"known_once": np.asarray(snapshot.known_once, dtype=np.uint8)}
+            if snapshot.remembered is None
+            else {"remembered": np.asarray(snapshot.remembered, dtype=np.int8)}
         ),
     }
 
@@ -241,15 +241,18 @@ def _read_map(
     x_m, y_m, theta_rad = floats("pose", (3,))
     travelled = float(floats("travelled_m", ()))
     memory = _read_floor_memory(archive, read, path, grid)
-    known_once = None
-    if "known_once.npy" in archive.namelist():
-        known = read("known_once")
-        if known.dtype != np.uint8 or known.shape != grid.shape or int(known.max(initial=0)) > 1:
+    remembered = None
+    if "remembered.npy" in archive.namelist():
+        remembered = np.asarray(read("remembered"))
+        if (
+            remembered.dtype != np.int8
+            or remembered.shape != grid.shape
+            or not np.isin(remembered, CLASSES).all()
+        ):
             raise MapFileError(
-                f"{path}: 'known_once' must be uint8 0/1 of shape {grid.shape}, got"
-                f" {known.dtype} {known.shape}"
+                f"{path}: 'remembered' must be int8 -1/0/1 of shape {grid.shape}, got"
+                f" {remembered.dtype} {remembered.shape}"
             )
-        known_once = np.asarray(known, dtype=np.bool_)
     try:
         return SavedMap(
             log_odds=np.asarray(log_odds, dtype=np.float32),
@@ -259,7 +262,7 @@ def _read_map(
             T_world_robot=Pose2D(float(x_m), float(y_m), float(theta_rad)),
             travelled_m=travelled,
             floor_memory=memory,
-            known_once=known_once,
+            remembered=remembered,
         )
     except ValueError as exc:
         raise MapFileError(f"{path}: not a usable map ({exc})") from exc

@@ -74,12 +74,14 @@ One update takes a ground patch from inverse perspective mapping (a robot-frame
    as travel, which fades the map it misplaces. `OccupancyGrid.snapshot` applies the
    pending travel (anchor to last pose) to its copy.
 
-   Faded is not unexplored: `OccupancyGrid.known_once` marks every cell that was once
-   free or occupied, and `OccupancyGrid.forgotten` the ones of them that decay has made
-   unknown again. The frontier search takes no frontier from forgotten cells: the robot
-   has looked there, and sending it back each time its memory fades kept exploration of
-   even a small room from ever finishing (a clean-clone CI run drove 16.6 m in a
-   3 x 2.4 m room, 4.6 m on a faster machine, and never came home).
+   Faded is not unexplored: `OccupancyGrid.remembered` keeps each cell's last class
+   (free or occupied) from before a decay made it unknown, and
+   `OccupancyGrid.remembered_classes` is the map with those memories filled in, which the
+   frontier search plans on. The robot has looked there: sending it back each time its
+   memory faded kept exploration of even a small room from finishing (a clean-clone CI
+   run drove 16.6 m in a 3 x 2.4 m room, 4.6 m on a faster machine, and never came
+   home), and faded floor is still the way to the unexplored beyond it and back home.
+   New evidence always wins over a memory.
 
 Cell classes (`classify`, int8): ``UNKNOWN = -1``, ``FREE = 0``, ``OCCUPIED = 1``; a cell
 is occupied when its log-odds is above ``occupied_threshold``, free when below
@@ -115,6 +117,7 @@ FREE = 0
 """`classify` code: free floor."""
 OCCUPIED = 1
 """`classify` code: obstacle."""
+CLASSES = (UNKNOWN, FREE, OCCUPIED)
 
 PATCH_UNTOUCHED = 0
 """`cast_rays` label: the patch cell gives no evidence (unseen, occluded, or before floor)."""
@@ -883,7 +886,7 @@ class SavedMap:
     travelled_m : float >= 0, the robot's travel fused into the map so far.
     floor_memory : the confirmed-floor layer and learned floor appearances
         (`app.mapping.floor_memory`), or None for a map without them.
-    known_once : (rows, cols) bool, read-only, the grid's `OccupancyGrid.known_once`; None
+    remembered : (rows, cols) int8, read-only, the grid's `OccupancyGrid.remembered`; None
         for a map saved without it.
     """
 
@@ -894,7 +897,7 @@ class SavedMap:
     T_world_robot: Pose2D
     travelled_m: float
     floor_memory: FloorMemoryState | None = field(default=None, repr=False)
-    known_once: NDArray[np.bool_] | None = field(default=None, repr=False)
+    remembered: NDArray[np.int8] | None = field(default=None, repr=False)
 
     def __post_init__(self) -> None:
         check_grid(self.world_grid, "world_grid")
@@ -929,21 +932,23 @@ class SavedMap:
         view = log_odds.view()
         view.setflags(write=False)
         object.__setattr__(self, "log_odds", view)
-        known_once = self.known_once
-        if known_once is not None:
+        remembered = self.remembered
+        if remembered is not None:
             if (
-                not isinstance(known_once, np.ndarray)
-                or known_once.dtype != np.bool_
-                or known_once.shape != self.world_grid.shape
+                not isinstance(remembered, np.ndarray)
+                or remembered.dtype != np.int8
+                or remembered.shape != self.world_grid.shape
+                or (remembered.size and not np.isin(remembered, CLASSES).all())
             ):
                 raise ValueError(
-                    f"known_once: expected bool of shape {self.world_grid.shape}, got"
-                    f" {getattr(known_once, 'dtype', type(known_once).__name__)}"
-                    f" {getattr(known_once, 'shape', '')}"
+                    f"remembered: expected int8 {UNKNOWN}/{FREE}/{OCCUPIED} of shape"
+                    f" {self.world_grid.shape}, got"
+                    f" {getattr(remembered, 'dtype', type(remembered).__name__)}"
+                    f" {getattr(remembered, 'shape', '')}"
                 )
-            known_view = known_once.view()
-            known_view.setflags(write=False)
-            object.__setattr__(self, "known_once", known_view)
+            remembered_view = remembered.view()
+            remembered_view.setflags(write=False)
+            object.__setattr__(self, "remembered", remembered_view)
 
     def classify(self) -> NDArray[np.int8]:
         """(rows, cols) int8: ``UNKNOWN`` (-1), ``FREE`` (0), ``OCCUPIED`` (1)."""
@@ -965,8 +970,8 @@ class OccupancyGrid:
     Attributes
     ----------
     log_odds : (rows, cols) float32, 0 = unknown; may be read (and, in tests, written).
-    known_once : (rows, cols) bool, cells that were free or occupied before a decay
-        (module docstring, 3); together with `classify` it gives `forgotten`.
+    remembered : (rows, cols) int8, each cell's class (``FREE`` / ``OCCUPIED``) when it was
+        last known before a decay, ``UNKNOWN`` if never (module docstring, 3).
     travelled_m : float, the robot's travel counted so far (metres, up to the anchor pose
         of the last decay).
     world_grid, params
@@ -977,7 +982,7 @@ class OccupancyGrid:
         self.world_grid = world_grid
         self.params = params if params is not None else OccupancyParams()
         self.log_odds: NDArray[np.float32] = np.zeros(world_grid.shape, dtype=np.float32)
-        self.known_once: NDArray[np.bool_] = np.zeros(world_grid.shape, dtype=np.bool_)
+        self.remembered: NDArray[np.int8] = np.full(world_grid.shape, UNKNOWN, dtype=np.int8)
         self.travelled_m = 0.0
         self._anchor: Pose2D | None = None
         self._last_pose: Pose2D | None = None
@@ -1022,14 +1027,19 @@ class OccupancyGrid:
         factor = decay_factor(step_m, self.params.half_distance_m)
         if factor == 1.0:
             return False
-        # Only decay turns a known cell unknown without new evidence: mark them first.
-        self._mark_known(self.known_once, self.log_odds)
+        # Only decay turns a known cell unknown without new evidence: remember it first.
+        self._remember(self.remembered, self.log_odds)
         self.log_odds *= np.float32(factor)
         return True
 
-    def _mark_known(self, known_once: NDArray[np.bool_], log_odds: NDArray[np.float32]) -> None:
-        known_once |= log_odds <= np.float32(self.params.free_threshold)
-        known_once |= log_odds >= np.float32(self.params.occupied_threshold)
+    def _remember(self, remembered: NDArray[np.int8], log_odds: NDArray[np.float32]) -> None:
+        classes = classify_log_odds(
+            log_odds,
+            free_threshold=self.params.free_threshold,
+            occupied_threshold=self.params.occupied_threshold,
+        )
+        known = classes != UNKNOWN
+        remembered[known] = classes[known]
 
     def _pending_travel_m(self) -> float:
         """Travel from the anchor to the last pose, not yet decayed."""
@@ -1094,11 +1104,13 @@ class OccupancyGrid:
             occupied_threshold=self.params.occupied_threshold,
         )
 
-    def forgotten(self, classes: NDArray[np.int8] | None = None) -> NDArray[np.bool_]:
-        """(rows, cols) bool: cells once free or occupied that decay has made unknown
-        (module docstring, 3). ``classes``: this grid's `classify`, if already at hand."""
-        classes = self.classify() if classes is None else classes
-        return np.asarray(self.known_once & (classes == UNKNOWN), dtype=np.bool_)
+    def remembered_classes(self) -> NDArray[np.int8]:
+        """`classify`, with each cell that decay has made unknown given its last known
+        class (`remembered`): the map to plan and explore on (module docstring, 3)."""
+        classes = self.classify()
+        faded = classes == UNKNOWN
+        classes[faded] = self.remembered[faded]
+        return classes
 
     def probabilities(self) -> NDArray[np.float32]:
         """(rows, cols) float32 occupancy probabilities, 0.5 where unknown."""
@@ -1111,9 +1123,9 @@ class OccupancyGrid:
         anywhere."""
         pending_m = self._pending_travel_m()
         factor = np.float32(decay_factor(pending_m, self.params.half_distance_m))
-        known_once = self.known_once.copy()
+        remembered = self.remembered.copy()
         if factor != 1:
-            self._mark_known(known_once, self.log_odds)
+            self._remember(remembered, self.log_odds)
         log_odds = self.log_odds * factor if factor != 1 else self.log_odds.copy()
         return SavedMap(
             log_odds=log_odds,
@@ -1122,7 +1134,7 @@ class OccupancyGrid:
             occupied_threshold=self.params.occupied_threshold,
             T_world_robot=self._last_pose if self._last_pose is not None else Pose2D(),
             travelled_m=self.travelled_m + pending_m,
-            known_once=known_once,
+            remembered=remembered,
         )
 
     def restore(self, snapshot: SavedMap) -> None:
@@ -1145,11 +1157,11 @@ class OccupancyGrid:
                 f" grid is {describe_grid(self.world_grid)}"
             )
         np.clip(snapshot.log_odds, self.params.clamp_min, self.params.clamp_max, out=self.log_odds)
-        if snapshot.known_once is not None:
-            self.known_once[...] = snapshot.known_once
+        if snapshot.remembered is not None:
+            self.remembered[...] = snapshot.remembered
         else:  # a map saved before the layer existed: what it knows now
-            self.known_once.fill(False)
-            self._mark_known(self.known_once, self.log_odds)
+            self.remembered.fill(UNKNOWN)
+            self._remember(self.remembered, self.log_odds)
         self.travelled_m = snapshot.travelled_m
         self._anchor = snapshot.T_world_robot
         self._last_pose = snapshot.T_world_robot
@@ -1157,7 +1169,7 @@ class OccupancyGrid:
     def reset(self) -> None:
         """Forget all evidence, the travel and the poses (the ray table is kept)."""
         self.log_odds.fill(0.0)
-        self.known_once.fill(False)
+        self.remembered.fill(UNKNOWN)
         self.travelled_m = 0.0
         self._anchor = None
         self._last_pose = None

@@ -170,28 +170,6 @@ def test_frontier_mask_adjacency() -> None:
     assert frontier_mask(cells, adjacency=8).astype(int).tolist() == [[0, 1, 0], [1, 1, 0]]
 
 
-def test_forgotten_cells_make_no_frontier() -> None:
-    # ROOM's cluster A faces the unknown row 0, cols 0..3. Once those cells are known to
-    # have been seen (decay made them unknown again), A is no frontier; the goal moves on
-    # to C, around the unknown cell never seen.
-    cells, grid = parse(ROOM)
-    robot = centre(grid, 6, 2)
-    params = FrontierParams(min_cluster_cells=3, inflation_radius_m=0.0, robot_radius_m=0.0)
-    first = find_frontiers(cells, grid, robot, params)
-    assert first.goal is not None and first.goal.cell == (1, 2)
-    forgotten = np.zeros(cells.shape, bool)
-    forgotten[0, 0:4] = True
-    assert frontier_mask(cells, forgotten=forgotten)[1].tolist() == [False] * 5 + [True] * 5
-    result = find_frontiers(cells, grid, robot, params, forgotten=forgotten)
-    assert result.goal is not None and result.goal.cell in {(4, 9), (5, 8), (6, 9)}
-    # All of the unknown seen once: nothing is left to explore (B was walled off anyway).
-    forgotten = cells == UNKNOWN
-    result = find_frontiers(cells, grid, robot, params, forgotten=forgotten)
-    assert result.goal is None and result.reason == REASON_NO_FRONTIER
-    with pytest.raises(ValueError, match="forgotten: shape"):
-        frontier_mask(cells, forgotten=forgotten[:, :3])
-
-
 def test_path_distances_do_not_cut_corners() -> None:
     traversable = np.array([[True, False], [False, True]])
     distance, _ = path_distances(traversable, (0, 0), 1.0)

@@ -80,23 +80,20 @@ def test_save_then_load_gives_the_same_map_exactly(tmp_path: Path, snapshot: Sav
     np.testing.assert_array_equal(load_map(again).log_odds, snapshot.log_odds)
 
 
-def test_the_cells_known_once_survive_a_save(tmp_path: Path, snapshot: SavedMap) -> None:
-    assert snapshot.known_once is not None and snapshot.known_once.any()  # it decayed
-    path = tmp_path / "known.npz"
+def test_the_remembered_classes_survive_a_save(tmp_path: Path, snapshot: SavedMap) -> None:
+    assert snapshot.remembered is not None and (snapshot.remembered != UNKNOWN).any()
+    path = tmp_path / "remembered.npz"
     save_map(path, snapshot)
     loaded = load_map(path)
-    assert loaded.known_once is not None
-    np.testing.assert_array_equal(loaded.known_once, snapshot.known_once)
+    assert loaded.remembered is not None
+    np.testing.assert_array_equal(loaded.remembered, snapshot.remembered)
     # A file from before the layer loads without it; a bad layer is refused.
-    write_npz(tmp_path / "old.npz", with_changes(snapshot, known_once=None))
-    assert load_map(tmp_path / "old.npz").known_once is None
-    write_npz(tmp_path / "bad.npz", with_changes(snapshot, known_once=np.full((60, 40), 2, "u1")))
-    with pytest.raises(MapFileError, match="'known_once' must be uint8 0/1"):
+    write_npz(tmp_path / "old.npz", with_changes(snapshot, remembered=None))
+    assert load_map(tmp_path / "old.npz").remembered is None
+    bad = np.full((60, 40), 2, np.int8)
+    write_npz(tmp_path / "bad.npz", with_changes(snapshot, remembered=bad))
+    with pytest.raises(MapFileError, match="'remembered' must be int8 -1/0/1"):
         load_map(tmp_path / "bad.npz")
-
-    # Saving over an existing map replaces it.
-    save_map(path, OccupancyGrid(WORLD).snapshot())
-    assert not load_map(path).log_odds.any()
 
 
 def write_npz(path: Path, arrays: dict[str, Any]) -> Path:

@@ -12,6 +12,7 @@ from numpy.typing import NDArray
 
 from app.benchmarks.grid import bench_grid_update, format_grid_bench
 from app.mapping.frames import FLOOR, NOT_FLOOR, UNSEEN, GroundGrid, Pose2D
+from app.mapping.frontiers import FrontierParams, find_frontiers
 from app.mapping.occupancy import (
     FREE,
     OCCUPIED,
@@ -308,46 +309,69 @@ def test_driving_n_half_distances_halves_the_evidence_n_times() -> None:
     assert decay_factor(0.5, 1.0) == pytest.approx(math.sqrt(0.5))
 
 
-def test_decay_forgets_cells_but_remembers_they_were_explored() -> None:
+def test_decay_forgets_evidence_but_remembers_what_the_cells_were() -> None:
     params = OccupancyParams(obstacle_band_m=0.025, half_distance_m=1.0, decay_step_m=0.05)
     grid = OccupancyGrid(WORLD, params)
     for _ in range(3):
         grid.update(wall_patch(), PATCH, Pose2D(), CAMERA)
-    known = grid.classify() != UNKNOWN
-    assert known.sum() > 100 and not grid.known_once.any()  # nothing decayed yet
-    assert not grid.forgotten().any()
+    seen = grid.classify()
+    assert (seen == FREE).sum() > 100 and (seen == OCCUPIED).sum() > 10
+    assert (grid.remembered == UNKNOWN).all()  # nothing decayed yet
+    np.testing.assert_array_equal(grid.remembered_classes(), seen)
     unseen = np.full(PATCH.shape, UNSEEN, np.uint8)
-    grid.update(unseen, PATCH, Pose2D(0.0, 0.0, 0.0), CAMERA)
     grid.update(unseen, PATCH, Pose2D(-0.9, 0.0, 0.0), CAMERA)  # behind: sees nothing new
     grid.update(unseen, PATCH, Pose2D(0.0, 0.0, 0.0), CAMERA)  # 1.8 m: 0.29 of it is left
-    np.testing.assert_array_equal(grid.known_once, known)
-    faded = known & (grid.classify() == UNKNOWN)
+    faded = (seen != UNKNOWN) & (grid.classify() == UNKNOWN)
     assert faded.sum() > 50
-    np.testing.assert_array_equal(grid.forgotten(), faded)
-    # Seeing the wall again makes its cells known: no longer forgotten.
+    np.testing.assert_array_equal(grid.remembered, seen)
+    np.testing.assert_array_equal(grid.remembered_classes(), seen)
+    # Planned on, the faded room is still there, explored: its frontiers are the free
+    # cells beside what was never seen. Without the memory it is a void.
+    frontier_params = FrontierParams(min_cluster_cells=1, robot_radius_m=0.0)
+    assert find_frontiers(grid.classify(), WORLD, (0.0, 0.0), frontier_params).clusters == ()
+    remembered = find_frontiers(grid.remembered_classes(), WORLD, (0.0, 0.0), frontier_params)
+    assert remembered.goal is not None
+    never_seen = np.pad(seen == UNKNOWN, 1)
+    for cluster in remembered.clusters:
+        rows, cols = cluster.cells[:, 0] + 1, cluster.cells[:, 1] + 1
+        beside = (
+            never_seen[rows - 1, cols]
+            | never_seen[rows + 1, cols]
+            | never_seen[rows, cols - 1]
+            | never_seen[rows, cols + 1]
+        )
+        assert (seen[rows - 1, cols - 1] == FREE).all() and beside.all()
+    # New evidence wins over a memory: a person now stands where the floor was free.
+    person = np.full(PATCH.shape, UNSEEN, np.uint8)
+    person[60:, :] = FLOOR
+    person[55:60, 45:55] = NOT_FLOOR
     for _ in range(3):
-        grid.update(wall_patch(), PATCH, Pose2D(), CAMERA)
-    assert not grid.forgotten().any()
-    # The snapshot carries the layer, with the pending travel's decay marked too.
+        grid.update(person, PATCH, Pose2D(), CAMERA)
+    now_classes = grid.classify()
+    standing = now_classes == OCCUPIED
+    assert (standing & (seen == FREE)).any()
+    np.testing.assert_array_equal(grid.remembered_classes()[standing], OCCUPIED)
+
+    # The snapshot carries the layer, with the pending travel's decay remembered too.
     params = replace(params, decay_step_m=10.0)
     pending = OccupancyGrid(WORLD, params)
     for _ in range(3):
         pending.update(wall_patch(), PATCH, Pose2D(), CAMERA)
     pending.update(unseen, PATCH, Pose2D(3.0, 0.0, 0.0), CAMERA)  # below the decay step
-    assert not pending.known_once.any()
+    assert (pending.remembered == UNKNOWN).all()
     snapshot = pending.snapshot()
-    assert snapshot.known_once is not None and not snapshot.known_once.flags.writeable
-    np.testing.assert_array_equal(snapshot.known_once, known)
+    assert snapshot.remembered is not None and not snapshot.remembered.flags.writeable
+    np.testing.assert_array_equal(snapshot.remembered, seen)
     restored = OccupancyGrid(WORLD, params)
     restored.restore(snapshot)
-    np.testing.assert_array_equal(restored.forgotten(), known & (snapshot.classify() == UNKNOWN))
+    np.testing.assert_array_equal(restored.remembered_classes(), seen)
     restored.reset()
-    assert not restored.known_once.any()
-    # A map saved without the layer: what it knows now counts as known once.
-    restored.restore(replace(snapshot, known_once=None))
-    np.testing.assert_array_equal(restored.known_once, snapshot.classify() != UNKNOWN)
-    with pytest.raises(ValueError, match=r"known_once: expected bool of shape \(60, 40\)"):
-        replace(snapshot, known_once=np.zeros((60, 40), np.uint8))
+    assert (restored.remembered == UNKNOWN).all()
+    # A map saved without the layer: what it knows now is what it remembers.
+    restored.restore(replace(snapshot, remembered=None))
+    np.testing.assert_array_equal(restored.remembered, snapshot.classify())
+    with pytest.raises(ValueError, match=r"remembered: expected int8 -1/0/1 of shape \(60, 40\)"):
+        replace(snapshot, remembered=np.full((60, 40), 2, np.int8))
 
 
 def test_a_jittering_pose_never_adds_up_to_travel() -> None:
