@@ -1028,16 +1028,13 @@ class OccupancyGrid:
         if factor == 1.0:
             return False
         # Only decay turns a known cell unknown without new evidence: remember it first.
-        self._remember(self.remembered, self.log_odds)
+        self._remember(self.remembered)
         self.log_odds *= np.float32(factor)
         return True
 
-    def _remember(self, remembered: NDArray[np.int8], log_odds: NDArray[np.float32]) -> None:
-        classes = classify_log_odds(
-            log_odds,
-            free_threshold=self.params.free_threshold,
-            occupied_threshold=self.params.occupied_threshold,
-        )
+    def _remember(self, remembered: NDArray[np.int8]) -> None:
+        """Write the grid's known classes (`classify`) into ``remembered``."""
+        classes = self.classify()
         known = classes != UNKNOWN
         remembered[known] = classes[known]
 
@@ -1125,7 +1122,7 @@ class OccupancyGrid:
         factor = np.float32(decay_factor(pending_m, self.params.half_distance_m))
         remembered = self.remembered.copy()
         if factor != 1:
-            self._remember(remembered, self.log_odds)
+            self._remember(remembered)
         log_odds = self.log_odds * factor if factor != 1 else self.log_odds.copy()
         return SavedMap(
             log_odds=log_odds,
@@ -1161,7 +1158,7 @@ class OccupancyGrid:
             self.remembered[...] = snapshot.remembered
         else:  # a map saved before the layer existed: what it knows now
             self.remembered.fill(UNKNOWN)
-            self._remember(self.remembered, self.log_odds)
+            self._remember(self.remembered)
         self.travelled_m = snapshot.travelled_m
         self._anchor = snapshot.T_world_robot
         self._last_pose = snapshot.T_world_robot
