@@ -247,6 +247,7 @@ def report(rt: Runtime) -> dict[str, Any]:
         "steering_decisions": dict(rt.steering_stage.reasons),
         "goals_given_up": rt.mapping.goals_given_up,
         "frontier_clusters_given_up": rt.mapping.clusters_given_up,
+        "edge_probes_opened": rt.mapping.probes_opened,
         "commands_sent": counters.commands_sent,
         "send_errors": counters.send_errors,
         "serial": None

@@ -339,6 +339,8 @@ class MappingStage:
         """Goals given up this run (each map keeps its own, `GroundMapper.given_up`)."""
         self.clusters_given_up = 0
         """Of them, the failures that gave up their whole frontier (`GivenUpGoals.add`)."""
+        self.probes_opened = 0
+        """Edge probes that opened their edge (not counted as goals given up)."""
         self._goal_since: tuple[tuple[float, float], float] | None = None
         self._frontier_due_s = 0.0
         self._snapshot_due_s = 0.0
@@ -654,12 +656,22 @@ class MappingStage:
         pose = self.shared.odometry.pose
         if goal.probe and math.dist(goal.xy, (pose.x_m, pose.y_m)) < PROBE_ARRIVED_M:
             # An edge probe has had its look on the way there (parallax needs motion).
-            self._give_up(mapper, goal.xy)
+            # If it opened its edge, only that edge is done: the next one, just past it,
+            # is seen close from the floor it opened.
+            edge = goal.edge_cells
+            opened = edge is not None and mapper.probe_opened(edge)
+            if opened:
+                assert edge is not None
+                mapper.given_up.looked_at(edge)
+                self.probes_opened += 1
+            else:
+                self._give_up(mapper, goal.xy)
             log.info(
-                "edge probe at (%.2f, %.2f) done",
+                "edge probe at (%.2f, %.2f) done: %s",
                 goal.xy[0],
                 goal.xy[1],
-                extra={"event": "probe_done"},
+                "its edge is open" if opened else "its edge stays",
+                extra={"event": "probe_done", "opened": opened},
             )
             self._goal_since = None
             return

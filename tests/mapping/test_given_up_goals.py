@@ -12,7 +12,7 @@ from app.mapping.ground_map import (
     PROBE_GIVEN_UP_RADIUS_M,
     GivenUpGoals,
 )
-from app.mapping.occupancy import FREE, UNKNOWN
+from app.mapping.occupancy import FREE, OCCUPIED, UNKNOWN
 
 GRID = GroundGrid(3.0, 1.5, 0.1, 30, 30)  # x 0..3, y -1.5..1.5
 
@@ -117,3 +117,42 @@ def test_a_given_up_goal_makes_no_frontier_nearby_and_none_on_its_rim() -> None:
     expected[15, 11:19] = False  # cells 0.38 m (col 11) to 0.32 m (col 18) away
     assert np.array_equal(frontier, expected)
     assert found.goal is not None and expected[found.goal.cell]
+
+
+def test_a_probe_that_opened_its_edge_gives_up_that_edge_alone() -> None:
+    given_up = GivenUpGoals(GRID)
+    edge = cluster_along_row(10, range(12, 17))
+    given_up.looked_at(edge)
+    rows, cols = np.indices(GRID.shape)
+    # The edge and the cells beside it (diagonals too), nothing farther: the next edge
+    # two cells on is probed in its turn.
+    beside = (np.abs(rows - 10) <= 1) & (cols >= 11) & (cols <= 17)
+    assert np.array_equal(given_up.no_probe, beside)
+    assert not given_up.no_frontier.any() and len(given_up) == 0
+
+
+def test_probe_opened_reads_the_edge_on_the_map_the_search_plans_on() -> None:
+    from app.config import load_config
+    from app.mapping.ground_map import PROBE_OPENED_SHARE, GroundMapper
+    from app.sim.setup import camera_model, sim_floor_calibration
+
+    config = load_config(None)
+    calibration = sim_floor_calibration(camera_model(config))
+    mapper = GroundMapper(calibration, config.mapping, config.camera)
+    grid = mapper.grid
+    edge = np.array([(200, c) for c in range(190, 200)], dtype=np.int64)
+    rows, cols = edge.T
+    occupied = np.float32(2 * grid.params.occupied_threshold)
+    free = np.float32(2 * grid.params.free_threshold)
+    grid.log_odds[rows, cols] = occupied
+    assert not mapper.probe_opened(edge)
+    assert not mapper.probe_opened(edge[:0])
+    opened = int(np.ceil(PROBE_OPENED_SHARE * len(edge)))
+    grid.log_odds[rows[:opened], cols[:opened]] = free
+    assert mapper.probe_opened(edge)
+    grid.log_odds[rows[opened - 1], cols[opened - 1]] = occupied
+    assert not mapper.probe_opened(edge)
+    # Faded to unknown, a cell counts as what it was last (the remembered map).
+    grid.log_odds[rows[:opened], cols[:opened]] = 0.0
+    grid.remembered[rows[:opened], cols[:opened]] = OCCUPIED
+    assert not mapper.probe_opened(edge)
