@@ -1,7 +1,7 @@
 #!/usr/bin/env python3
 """How true is the map's standing layer, and does it leave the frontier search an edge
-to probe first? Edges near a cell geometry marked standing are probed only as a last
-resort (`find_frontiers`'s ``standing``; `unproven_edges` are probed first): this drives
+to probe? Exploration of the home ends in its living room when every occupied edge lies
+near a cell geometry marked standing (`GroundMapper.frontier_probe_cells`): this drives
 the same scripted tour as `scripts/measure_localization.py` (open loop, every frame
 rendered, segmented and mapped as the daemon does; the daemon's timing plays no part)
 with the shipped geometry and with the parallax test alone, and scores the layer
@@ -19,6 +19,8 @@ import argparse
 import json
 import sys
 from pathlib import Path
+
+import numpy as np
 
 ROOT = Path(__file__).resolve().parents[1]
 sys.path.insert(0, str(ROOT))
@@ -56,8 +58,8 @@ def run(world: str, seed: int, geometry: str) -> dict[str, object]:
     scores = map_truth_scores(mapper.grid.classify(), grid, tour.start, tour.renderer.world)
     inputs = mapper.frontier_inputs(tour.odometry.pose)
     search = search_frontiers(inputs)
-    # The same map with every edge probed alike: what the standing layer puts last.
-    unruled = inputs._replace(standing=None)
+    # The same map with every unproven edge probe-able: what the standing layer rules out.
+    unruled = inputs._replace(probe_cells=np.asarray(~mapper.given_up.no_probe, dtype=np.bool_))
     return {
         "world": world,
         "seed": seed,

@@ -57,19 +57,8 @@ point (then nearest by path): it stays put while the robot drives there. Driving
 at it gives the motion-parallax test its baseline: a flat edge becomes known floor (its
 colour learned, and free evidence wears its false wall away), a standing one is marked
 so, and the caller leaves it out of ``probe_cells`` from then on. The goal's ``probe``
-is True.
-
-**Edges near what stands.** Given ``standing`` (the cells geometry saw standing), edges
-within ``PROBE_STANDING_REACH_M`` of one are real edges as a rule (a wall's foot is
-marked where its floor ends, a cell or two off) and are probed only when no other edge
-leads to a frontier. Then the search looks again with them unproven too, for a frontier
-on floor the map has seen beyond them (relaxed, every wall that borders the unknown
-would be one), and a move into a standing cell costs ``PROBE_STANDING_CROSSING_COST``
-more: the way crosses where nothing was seen standing if there is such a place. Why
-they are probed at all: the horizon's walls test takes a doorway's threshold for a
-wall's foot when the room beyond has the wall's colour (beige tiles under a beige wall),
-and without a look the home ends at that door. The look, from close by, lets parallax
-clear the marks of what is flat (a real wall keeps them); the edge is not probed again.
+is True and its ``edge_cells`` are the target (the caller reads them on arrival: an
+edge the look opened is given up alone, and the next edge past it is probed in turn).
 """
 
 from __future__ import annotations
@@ -101,12 +90,6 @@ frontier is nearest beats a detour over the unproven side."""
 PROBE_EDGE_SPAN_M = 0.3
 """Edge probes: the unproven edge cells this close to where the relaxed path meets the
 edge are the probe's target (one look covers about this much of an edge)."""
-PROBE_STANDING_REACH_M = 0.3
-"""Edge probes: an occupied cell this close to one geometry saw standing is a real edge
-as a rule, probed only as a last resort (module docstring)."""
-PROBE_STANDING_CROSSING_COST = 40.0
-"""Last-resort probes: the extra step weight of a cell seen standing, so the way crosses
-a wall (a few standing cells, two metres each) only where no door is left."""
 
 
 @dataclass(frozen=True)
@@ -488,7 +471,6 @@ def find_frontiers(
     *,
     robot_heading_rad: float | None = None,
     probe_cells: NDArray[np.bool_] | None = None,
-    standing: NDArray[np.bool_] | None = None,
     no_frontier: NDArray[np.bool_] | None = None,
 ) -> FrontierSearch:
     """Frontier clusters of a classified grid and the goal to explore next.
@@ -503,9 +485,6 @@ def find_frontiers(
     robot_heading_rad : the robot's heading in the world frame, for the turn penalty.
     probe_cells : (rows, cols) bool, occupied cells whose edge may be probed when no
         frontier is reachable (module docstring); None: no probes.
-    standing : (rows, cols) bool, cells geometry saw standing: edges near them are
-        probed only when no other edge leads anywhere (module docstring); None: every
-        edge in ``probe_cells`` is probed alike.
     no_frontier : (rows, cols) bool, cells that make no frontier (around goals given up).
         They stay what they are: counting them as free floor instead put a new frontier
         on their rim, a step further into the unknown, and the next goal there.
@@ -519,8 +498,6 @@ def find_frontiers(
     check_grid(grid)
     check_classes(cells, grid)
     robot_xy = check_xy(robot_xy_world, "robot_xy_world")
-    if standing is not None and standing.shape != cells.shape:
-        raise ValueError(f"standing: expected shape {cells.shape}, got {standing.shape}")
     cell_m = grid.cell_m
 
     footprint = footprint_mask(grid, robot_xy, params.robot_radius_m)
@@ -579,16 +556,13 @@ def find_frontiers(
         return result(None, REASON_OUTSIDE_MAP)
     reachable = [c for c in clusters if c.representative_cell is not None]
     if not reachable or not clusters:
-        probe = None
-        if probe_cells is not None:
-            probe_search = (known, grid, distance, parent, params, (row, col), footprint, excluded)
-            if standing is None:
-                probe = _probe_goal(probe_cells, None, *probe_search)
-            else:
-                first = unproven_edges(probe_cells, standing, cell_m)
-                probe = _probe_goal(first, None, *probe_search)
-                if probe is None:
-                    probe = _probe_goal(probe_cells, standing, *probe_search)
+        probe = (
+            None
+            if probe_cells is None
+            else _probe_goal(
+                known, grid, probe_cells, distance, parent, params, (row, col), footprint, excluded
+            )
+        )
         if probe is not None:
             return result(probe, "")
         return result(None, REASON_NO_REACHABLE if clusters else REASON_NO_FRONTIER)
@@ -636,20 +610,10 @@ def _traversable(
     return np.asarray(traversable, dtype=np.bool_), weight
 
 
-def unproven_edges(
-    probe_cells: NDArray[np.bool_], standing: NDArray[np.bool_], cell_m: float
-) -> NDArray[np.bool_]:
-    """The cells of ``probe_cells`` farther than ``PROBE_STANDING_REACH_M`` from every
-    ``standing`` one: the edges probed first (module docstring)."""
-    near_standing = inflate_obstacles(standing, PROBE_STANDING_REACH_M / cell_m)
-    return np.asarray(probe_cells & ~near_standing, dtype=np.bool_)
-
-
 def _probe_goal(
-    probe_cells: NDArray[np.bool_],
-    standing: NDArray[np.bool_] | None,
     known: NDArray[np.int8],
     grid: GroundGrid,
+    probe_cells: NDArray[np.bool_],
     distance: NDArray[np.float64],
     parent: NDArray[np.int64],
     params: FrontierParams,
@@ -659,9 +623,7 @@ def _probe_goal(
 ) -> FrontierGoal | None:
     """The nearest reachable cell from which to look at the unproven edge that stands
     between the robot and the nearest frontier it cannot reach (module docstring).
-    ``known`` is the classified grid with the robot's footprint free. With ``standing``
-    (the last resort) moves into its cells cost ``PROBE_STANDING_CROSSING_COST`` more
-    and the frontier must lie on floor the map has seen."""
+    ``known`` is the classified grid with the robot's footprint free."""
     if probe_cells.shape != known.shape:
         raise ValueError(f"probe_cells: expected shape {known.shape}, got {probe_cells.shape}")
     occupied = known == OCCUPIED
@@ -675,10 +637,6 @@ def _probe_goal(
     reachable = np.isfinite(distance)
     frontier = frontier_mask(relaxed, adjacency=params.frontier_adjacency, exclude=excluded)
     frontier &= ~reachable
-    if standing is not None:
-        # Last resort: only floor seen beyond the edge is worth crossing a wall-like edge
-        # for (every wall borders the unknown, and relaxed it would be a frontier).
-        frontier &= known == FREE
     labels, n_labels = ndimage.label(frontier, structure=np.ones((3, 3), dtype=bool))
     if n_labels == 0:
         return None
@@ -690,8 +648,6 @@ def _probe_goal(
         return None
     traversable, weight = _traversable(relaxed == FREE, hard, footprint, cell_m, params)
     weight[~reachable] += PROBE_CROSSING_COST
-    if standing is not None:
-        weight[standing] += PROBE_STANDING_CROSSING_COST
     relaxed_distance, relaxed_parent = path_distances(traversable, robot_cell, cell_m, weight)
     ahead = np.where(frontier, relaxed_distance, np.inf)
     flat = int(np.argmin(ahead))

@@ -24,7 +24,6 @@ from app.mapping.frontiers import (
     find_frontiers,
     inflate_obstacles,
     stamp_disk,
-    unproven_edges,
 )
 from app.mapping.ipm import BirdseyeMap, birdseye_floor_patch, build_birdseye_map
 from app.mapping.occupancy import (
@@ -359,6 +358,9 @@ class _Adopted:
 
 STANDING_COLOUR_STRIDE = 4
 """Every this many standing pixels' colours vote on unlearning (thousands per test)."""
+PROBE_STANDING_REACH_M = 0.3
+"""An occupied cell this close to one geometry saw standing is a real edge: not probed
+(what stands is marked at its foot, where the floor ends: `standing_feet`)."""
 PROBE_GIVEN_UP_RADIUS_M = 0.8
 """Edges within this of a given-up goal are not probed again (`GroundMapper.frontiers`):
 the probe stood within the inflation radius plus two cells of its edge, and an edge
@@ -432,8 +434,8 @@ class GivenUpGoals:
     def looked_at(self, edge_cells: NDArray[np.int64]) -> None:
         """An edge probe that opened its edge: only those cells (and the cells beside
         them) are not probed again. The floor it opened may end at the next edge a
-        little further on (the tiles past a threshold, seen close only from it), and
-        that one gets its own look."""
+        little further on (specks past a threshold, seen close only from it), and that
+        one gets its own look."""
         rows, cols = np.asarray(edge_cells, dtype=np.int64).reshape(-1, 2).T
         looked = np.zeros(self.grid.shape, dtype=bool)
         looked[rows, cols] = True
@@ -1001,22 +1003,24 @@ class GroundMapper:
         `update`): the search itself (`search_frontiers`) may then run in any thread. It
         plans on the remembered map (`OccupancyGrid.remembered_classes`): floor that has
         faded is explored, and still the way on and home."""
-        probes = self.mapping.frontier_probe_edges
+        probe_cells = self.frontier_probe_cells() if self.mapping.frontier_probe_edges else None
         return FrontierInputs(
             self.grid.remembered_classes(),
             self.grid.world_grid,
             (T_world_robot.x_m, T_world_robot.y_m),
             self.frontier_params,
-            self.frontier_probe_cells() if probes else None,
+            probe_cells,
             self.given_up.no_frontier.copy(),
-            self.memory.standing != 0 if probes else None,
         )
 
     def frontier_probe_cells(self) -> NDArray[np.bool_]:
-        """World cells whose occupied edges the frontier search may probe: not near a
-        probe given up (its edge is not looked at again). Those near what geometry saw
-        standing go last (`find_frontiers`'s ``standing``)."""
-        return np.asarray(~self.given_up.no_probe, dtype=np.bool_)
+        """World cells whose occupied edges the frontier search may probe: not within
+        `PROBE_STANDING_REACH_M` of anything seen standing, nor near a probe given up
+        (its edge is not looked at again)."""
+        standing = inflate_obstacles(
+            self.memory.standing != 0, PROBE_STANDING_REACH_M / self.grid.world_grid.cell_m
+        )
+        return np.asarray(~(standing | self.given_up.no_probe), dtype=np.bool_)
 
     def probe_opened(self, edge_cells: NDArray[np.int64]) -> bool:
         """Whether an edge probe's edge (its goal's ``edge_cells``) is open now: at least
@@ -1030,20 +1034,17 @@ class GroundMapper:
         return bool(1.0 - occupied.mean() >= PROBE_OPENED_SHARE)
 
     def probe_edge_share(self) -> float | None:
-        """Of the cells the map calls occupied, the fraction the frontier search probes
-        first (`unproven_edges`: not given up, not near anything seen standing); None
-        without probes or occupied cells. Near zero, exploration goes on only through
-        last-resort probes of edges that look like walls."""
+        """Of the cells the map calls occupied, the fraction the frontier search may probe
+        (`frontier_probe_cells`); None without probes or occupied cells. Near zero,
+        exploration ends at the first edge the robot cannot prove floor."""
         if not self.mapping.frontier_probe_edges:
             return None
         occupied = self.grid.classify() == OCCUPIED
         n_occupied = int(np.count_nonzero(occupied))
         if n_occupied == 0:
             return None
-        first = unproven_edges(
-            self.frontier_probe_cells(), self.memory.standing != 0, self.grid.world_grid.cell_m
-        )
-        return round(int(np.count_nonzero(occupied & first)) / n_occupied, 4)
+        probe = int(np.count_nonzero(occupied & self.frontier_probe_cells()))
+        return round(probe / n_occupied, 4)
 
 
 class FrontierInputs(NamedTuple):
@@ -1055,7 +1056,6 @@ class FrontierInputs(NamedTuple):
     params: FrontierParams
     probe_cells: NDArray[np.bool_] | None
     no_frontier: NDArray[np.bool_] | None = None
-    standing: NDArray[np.bool_] | None = None
 
 
 def search_frontiers(inputs: FrontierInputs) -> FrontierSearch:
@@ -1066,7 +1066,6 @@ def search_frontiers(inputs: FrontierInputs) -> FrontierSearch:
         inputs.robot_xy,
         inputs.params,
         probe_cells=inputs.probe_cells,
-        standing=inputs.standing,
         no_frontier=inputs.no_frontier,
     )
 

@@ -4,7 +4,6 @@ the robot to look at an edge of the floor that geometry has not seen standing.""
 from __future__ import annotations
 
 import numpy as np
-import pytest
 
 from app.mapping.floor_memory import FloorMemory
 from app.mapping.frames import GroundGrid
@@ -13,7 +12,6 @@ from app.mapping.frontiers import (
     REASON_NO_REACHABLE,
     FrontierParams,
     find_frontiers,
-    unproven_edges,
 )
 from app.mapping.occupancy import FREE, OCCUPIED, UNKNOWN
 
@@ -110,89 +108,6 @@ def test_the_probe_crosses_the_seam_where_nothing_was_seen_standing() -> None:
     assert goal is not None and goal.probe
     # Before the unproven part (columns 21..28), not before the wall in front.
     assert goal.cell[0] == 8 and goal.cell[1] >= 19
-
-
-def threshold_before_seen_floor() -> np.ndarray:
-    """Seen floor rows 1..9, an occupied band at row 10 (a threshold), seen floor rows
-    11..19 beyond it (the next room, seen through the door) and the unknown past them."""
-    return seam_across_the_floor()
-
-
-def marks_on_the_band(columns: list[int]) -> np.ndarray:
-    """The standing layer: the side walls, and the band's ``columns``."""
-    standing = np.zeros(GRID.shape, bool)
-    standing[:21, [0, 29]] = True
-    standing[10, columns] = True
-    return standing
-
-
-def test_an_edge_near_what_stands_is_probed_only_when_no_other_edge_leads_on() -> None:
-    cells = threshold_before_seen_floor()
-    everywhere = np.ones(GRID.shape, bool)
-    # The horizon's walls test took the whole threshold for a wall's foot.
-    standing = marks_on_the_band(list(range(1, 29)))
-    assert not (unproven_edges(everywhere, standing, GRID.cell_m) & (cells == OCCUPIED))[10].any()
-    # Without the last resort (the edges near what stands left out) the search ends.
-    first_only = unproven_edges(everywhere, standing, GRID.cell_m)
-    search = find_frontiers(cells, GRID, ROBOT, PARAMS, probe_cells=first_only)
-    assert search.goal is None and search.reason == REASON_NO_REACHABLE
-    search = find_frontiers(cells, GRID, ROBOT, PARAMS, probe_cells=everywhere, standing=standing)
-    goal = search.goal
-    assert goal is not None and goal.probe
-    assert goal.cell == (8, 14)  # straight before the band, on the way to the seen floor
-    # An unproven part of the band is probed first, though farther: marks on columns
-    # 1..20 (and the walls) leave columns 24 and 25 more than 0.3 m from any.
-    standing = marks_on_the_band(list(range(1, 21)))
-    search = find_frontiers(cells, GRID, ROBOT, PARAMS, probe_cells=everywhere, standing=standing)
-    assert search.goal is not None and search.goal.probe and search.goal.cell[1] >= 21
-
-
-def test_the_last_resort_crosses_where_nothing_was_seen_standing() -> None:
-    # Every band cell lies within 0.3 m of a mark, but columns 21..26 carry none: the way
-    # crosses there rather than straight ahead through the marks.
-    standing = marks_on_the_band([*range(1, 21), 27, 28])
-    search = find_frontiers(
-        threshold_before_seen_floor(),
-        GRID,
-        ROBOT,
-        PARAMS,
-        probe_cells=np.ones(GRID.shape, bool),
-        standing=standing,
-    )
-    goal = search.goal
-    assert goal is not None and goal.probe
-    assert goal.cell[0] == 8 and 20 <= goal.cell[1] <= 27
-
-
-def test_the_last_resort_needs_floor_seen_beyond_the_edge() -> None:
-    # A wall-like band with nothing known beyond it (every wall of a room looks so): the
-    # first search would probe it were it unproven; near what stands it is not probed.
-    everywhere = np.ones(GRID.shape, bool)
-    search = find_frontiers(boxed_in(), GRID, ROBOT, PARAMS, probe_cells=everywhere)
-    assert search.goal is not None and search.goal.probe
-    standing = marks_on_the_band(list(range(1, 29)))
-    search = find_frontiers(
-        boxed_in(), GRID, ROBOT, PARAMS, probe_cells=everywhere, standing=standing
-    )
-    assert search.goal is None and search.reason == REASON_NO_FRONTIER
-    # Probes given up stay given up, last resort or not.
-    cells = threshold_before_seen_floor()
-    given_up = everywhere.copy()
-    given_up[8:13, :] = False
-    search = find_frontiers(cells, GRID, ROBOT, PARAMS, probe_cells=given_up, standing=standing)
-    assert search.goal is None
-
-
-def test_a_standing_layer_of_the_wrong_shape_is_refused() -> None:
-    with pytest.raises(ValueError, match="standing: expected shape"):
-        find_frontiers(
-            boxed_in(),
-            GRID,
-            ROBOT,
-            PARAMS,
-            probe_cells=np.ones(GRID.shape, bool),
-            standing=np.zeros((3, 3), bool),
-        )
 
 
 def test_floor_memory_remembers_what_stood_until_it_is_floor_again() -> None:

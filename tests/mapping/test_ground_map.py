@@ -15,7 +15,6 @@ from numpy.typing import NDArray
 from app.config import CameraConfig, MappingConfig
 from app.mapping.calibration import apply_homography, homography_from_point_pairs
 from app.mapping.frames import FLOOR, NOT_FLOOR, Pose2D
-from app.mapping.frontiers import unproven_edges
 from app.mapping.ground_map import WALLS_PERIOD_S, GroundMapper
 from app.mapping.occupancy import FREE, OCCUPIED, UNKNOWN, OccupancyGrid
 
@@ -305,7 +304,7 @@ def test_a_floor_coloured_box_the_mask_calls_floor_is_an_obstacle_by_the_horizon
 def test_a_plain_walls_foot_is_remembered_standing_and_kept_from_edge_probes() -> None:
     """The left room's plain wall 1.5 m ahead: parallax sees nothing on it, but it runs
     from where the floor ends to past the horizon, so its foot is marked standing and
-    the frontier search probes it only as a last resort, not as an unproven edge."""
+    the frontier search does not send the robot to probe it as an unproven edge."""
     # The wall is mapped from 1.5 m away (the default maps obstacles only within 1 m).
     far = {"obstacle_evidence_range_m": 2.0}
     mapper, renderer, segmenter = sim_mapper(standing_by_horizon=True, parallax_floor=False, **far)
@@ -325,19 +324,13 @@ def test_a_plain_walls_foot_is_remembered_standing_and_kept_from_edge_probes() -
     # All at the wall's foot (its inner face is at x = 0.05 m), across the view.
     assert np.all(x[marked] <= 0.2)
     assert y[marked].max() - y[marked].min() >= 0.8
-    # The wall's occupied cells are no unproven edge (the mapper without the test sees
-    # them as such); both may probe them, the mapper with the test only last.
+    # The wall's occupied cells are no edge to probe (the mapper without the test sees
+    # them as unproven edges).
     occupied = mapper.grid.classify() == OCCUPIED
     wall = occupied & (x <= 0.2)
     assert wall.sum() >= 10
-    cell_m = mapper.grid.world_grid.cell_m
-    assert not (unproven_edges(mapper.frontier_probe_cells(), marked, cell_m) & wall).any()
-    assert unproven_edges(plain.frontier_probe_cells(), plain.memory.standing != 0, cell_m)[
-        wall
-    ].all()
-    inputs = mapper.frontier_inputs(pose)
-    assert inputs.standing is not None and np.array_equal(inputs.standing, marked)
-    assert inputs.probe_cells is not None and inputs.probe_cells[wall].all()
+    assert not (mapper.frontier_probe_cells() & wall).any()
+    assert plain.frontier_probe_cells()[wall].all()
     # The report's share of probe-able edges says the same.
     assert plain.probe_edge_share() == 1.0
     assert mapper.probe_edge_share() is not None
