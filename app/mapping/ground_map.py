@@ -416,12 +416,10 @@ class GivenUpGoals:
         within the radii of them). Returns whether it was."""
         whole = False
         if cluster_cells is not None:
-            rows, cols = np.asarray(cluster_cells, dtype=np.int64).reshape(-1, 2).T
-            whole = bool(self.failed[rows, cols].any())
+            cluster = self._mask(cluster_cells)
+            whole = bool((self.failed & cluster).any())
             stamp_disk(self.failed, self.grid, xy, PROBE_GIVEN_UP_RADIUS_M)
             if whole:
-                cluster = np.zeros(self.grid.shape, dtype=bool)
-                cluster[rows, cols] = True
                 cell_m = self.grid.cell_m
                 self.no_frontier |= inflate_obstacles(cluster, GIVEN_UP_RADIUS_M / cell_m)
                 self.no_probe |= inflate_obstacles(cluster, PROBE_GIVEN_UP_RADIUS_M / cell_m)
@@ -436,10 +434,14 @@ class GivenUpGoals:
         them) are not probed again. The floor it opened may end at the next edge a
         little further on (specks past a threshold, seen close only from it), and that
         one gets its own look."""
-        rows, cols = np.asarray(edge_cells, dtype=np.int64).reshape(-1, 2).T
-        looked = np.zeros(self.grid.shape, dtype=bool)
-        looked[rows, cols] = True
-        self.no_probe |= inflate_obstacles(looked, math.sqrt(2))
+        self.no_probe |= inflate_obstacles(self._mask(edge_cells), math.sqrt(2))
+
+    def _mask(self, cells: NDArray[np.int64]) -> NDArray[np.bool_]:
+        """(rows, cols) bool, True on ``cells`` ((n, 2) row, col)."""
+        rows, cols = np.asarray(cells, dtype=np.int64).reshape(-1, 2).T
+        mask = np.zeros(self.grid.shape, dtype=bool)
+        mask[rows, cols] = True
+        return mask
 
     def __len__(self) -> int:
         return len(self.points)

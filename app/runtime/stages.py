@@ -660,8 +660,7 @@ class MappingStage:
             # is seen close from the floor it opened.
             edge = goal.edge_cells
             opened = edge is not None and mapper.probe_opened(edge)
-            if opened:
-                assert edge is not None
+            if edge is not None and opened:
                 mapper.given_up.looked_at(edge)
                 self.probes_opened += 1
             else:
