@@ -95,6 +95,10 @@ def test_the_remembered_classes_survive_a_save(tmp_path: Path, snapshot: SavedMa
     with pytest.raises(MapFileError, match="'remembered' must be int8 -1/0/1"):
         load_map(tmp_path / "bad.npz")
 
+    # Saving over an existing map replaces it.
+    save_map(path, OccupancyGrid(WORLD).snapshot())
+    assert not load_map(path).log_odds.any()
+
 
 def write_npz(path: Path, arrays: dict[str, Any]) -> Path:
     np.savez_compressed(path, **arrays)
