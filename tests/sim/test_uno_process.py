@@ -118,8 +118,10 @@ def test_the_host_hears_when_the_childs_deadman_trips(
     # quiet (tests/browser/test_operator_stop.py); both show as PWM 0/0.
     host = RawHost(uno.port)
     try:
-        host.command(MsgType.DRIVE, drive_payload(90, 90))
+        # Read the clock before sending: the child arms its deadman when the DRIVE
+        # arrives, which can be before command() returns with the ACK.
         sent_s = time.monotonic()
+        host.command(MsgType.DRIVE, drive_payload(90, 90))
         deadline = time.monotonic() + 2.0
         while not uno.deadman_trips_s and time.monotonic() < deadline:
             time.sleep(0.01)
