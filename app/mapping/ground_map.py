@@ -45,7 +45,7 @@ from app.perception.planar import (
     standing_feet,
     view_homography,
 )
-from app.perception.standing import horizon_rows, standing_across_horizon, walls_across_horizon
+from app.perception.standing import horizon_rows, standing_across_horizon, wall_surfaces
 from app.perception.upright import UprightView, upright_standing_feet, upright_view
 
 _NO_SECOND_MAP = np.empty((0, 0), dtype=np.uint16)
@@ -53,7 +53,7 @@ _NO_SECOND_MAP = np.empty((0, 0), dtype=np.uint16)
 PARALLAX_PERIOD_S = 0.2
 """The parallax test runs at most this often (~2-3 ms a frame, nogil)..."""
 WALLS_PERIOD_S = 0.2
-"""Walls are proven by the horizon (`walls_across_horizon`) at most this often: they
+"""Walls are proven by the horizon (`wall_surfaces`) at most this often: they
 stand still, their feet stay in the floor memory, and a frame's test and its marking
 cost ~8 ms of the mapping stage."""
 PARALLAX_CARRY_S = 0.5
@@ -235,7 +235,7 @@ class GeometryJob:
     horizon_row: NDArray[np.int64] | None
     """Per column, the first row below the horizon (None: the horizon tests are off)."""
     walls: bool
-    """Whether the walls test is due (`walls_across_horizon`)."""
+    """Whether the walls test is due (`wall_surfaces`)."""
     feet: _FeetGeometry
     generation: int
     """The mapper's map generation (`GroundMapper.restore` starts a new one)."""
@@ -260,6 +260,9 @@ class GeometryOutcome:
     """Where what stands meets the floor."""
     standing_bgr: NDArray[np.uint8] | None
     """Every `STANDING_COLOUR_STRIDE`-th colour of the standing pixels (unlearning)."""
+    wall_floor: NDArray[np.bool_] | None
+    """Colour floor that is the lower part of a wall (`wall_surfaces`): not floor seen
+    (None: the walls test did not run or found none)."""
     unaligned: bool
     """The views' floors could not be aligned; the test ran on odometry's poses."""
 
@@ -318,6 +321,7 @@ def run_geometry_job(job: GeometryJob) -> GeometryOutcome:
     else:
         floor_for_feet = floor
     across: NDArray[np.bool_] | None = None
+    wall_floor: NDArray[np.bool_] | None = None
     if job.horizon_row is not None and job.image.ndim == 3:
         # What stands across the horizon (the mapper marks it on every frame) joins the
         # rest for the feet: one column's box and the wall above it have one foot.
@@ -326,10 +330,16 @@ def run_geometry_job(job: GeometryJob) -> GeometryOutcome:
         floor_for_feet = floor_for_feet & ~across
         if job.walls:
             # Not-floor surfaces from where the floor ends to past the horizon: walls,
-            # proven standing though plain (the parallax test sees nothing on them).
-            walls = walls_across_horizon(floor, job.image, job.horizon_row)
-            if walls.any():
-                standing_parts.append(walls)
+            # proven standing though plain (the parallax test sees nothing on them),
+            # with the lower part of one the segmenter took for floor.
+            surfaces = wall_surfaces(floor, job.image, job.horizon_row)
+            if surfaces.walls.any():
+                standing_parts.append(surfaces.walls)
+            if surfaces.floor_part.any():
+                wall_floor = surfaces.floor_part
+                standing_parts.append(wall_floor)
+                floor = floor & ~wall_floor
+                floor_for_feet = floor_for_feet & ~wall_floor
     standing = feet = standing_bgr = None
     if standing_parts:
         standing = np.logical_or.reduce(standing_parts)
@@ -344,6 +354,7 @@ def run_geometry_job(job: GeometryJob) -> GeometryOutcome:
         standing=standing,
         feet=feet,
         standing_bgr=standing_bgr,
+        wall_floor=wall_floor,
         unaligned=unaligned,
     )
 
@@ -520,6 +531,9 @@ class GroundMapper:
         self._cut: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
         """The colour floor the last parallax test found behind something standing (image
         mask), where and when: carried, like ``_confirmed``, to the frames between."""
+        self._wall_cut: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
+        """The colour floor the last walls test found to be a wall's lower part, carried
+        the same way (the walls test runs on one frame in several)."""
         grid = self.birdseye.grid
         self.localizer = (
             ScanLocalizer(
@@ -568,8 +582,9 @@ class GroundMapper:
             if job is not None and geometry == "inline":
                 adopted = self._adopt(run_geometry_job(job))
                 job = None
-        if image is not None and self.parallax is not None:
-            floor_mask = self._with_confirmed(floor_mask, here, now_s)
+        if image is not None:
+            if self.parallax is not None:
+                floor_mask = self._with_confirmed(floor_mask, here, now_s)
             cut_px = self._cut_behind_standing(floor_mask, here, now_s)
             if cut_px is not None:
                 floor_mask = floor_mask & ~cut_px
@@ -645,7 +660,10 @@ class GroundMapper:
                 # The walls test looked along every column: near floor it saw, a cell
                 # clear of its own feet, holds no foot (a threshold marked while the
                 # floor beyond it was not yet known loses its mark once it is).
-                seen_floor = birdseye_floor_patch(outcome.job.floor_mask, self.birdseye) == FLOOR
+                floor_seen = outcome.job.floor_mask
+                if outcome.wall_floor is not None:
+                    floor_seen = floor_seen & ~outcome.wall_floor
+                seen_floor = birdseye_floor_patch(floor_seen, self.birdseye) == FLOOR
                 clear = seen_floor & self._near_cells
                 if feet is not None:
                     # A foot found a cell off (diagonals too) is the same foot.
@@ -778,6 +796,9 @@ class GroundMapper:
             self.parallax_unaligned += int(outcome.unaligned)
             self._confirmed = (outcome.added, then, job.time_s)
             self._cut = (outcome.cut, then, job.time_s) if outcome.cut is not None else None
+        if job.walls:
+            wall_floor = outcome.wall_floor
+            self._wall_cut = (wall_floor, then, job.time_s) if wall_floor is not None else None
         return _Adopted(outcome, then)
 
     def _with_confirmed(
@@ -941,6 +962,9 @@ class GroundMapper:
         if self._cut is not None and self._cut[2] > after_s:
             cut, then, at_s = self._cut
             self._cut = (cut, _moved(then, T_corrected_odom), at_s)
+        if self._wall_cut is not None and self._wall_cut[2] > after_s:
+            cut, then, at_s = self._wall_cut
+            self._wall_cut = (cut, _moved(then, T_corrected_odom), at_s)
 
     def snapshot(self) -> SavedMap:
         """A read-only copy of the map for saving (`app.mapping.map_files.save_map`); call
@@ -967,19 +991,24 @@ class GroundMapper:
         self._keyframe = None
         self._confirmed = None
         self._cut = None
+        self._wall_cut = None
 
     def _cut_behind_standing(
         self, floor_mask: NDArray[np.bool_], here: tuple[float, float, float], now_s: float
     ) -> NDArray[np.bool_] | None:
-        """The part of ``floor_mask`` that lies behind something the last test saw
-        standing (`floor_before_standing`), moved with the floor homography: exact at
-        the surface's foot (on the floor) and off by its parallax above it, for a few
-        frames at most. None when there is none."""
-        if self._cut is None or now_s - self._cut[2] > PARALLAX_CARRY_S:
-            return None
-        cut, then, _ = self._cut
-        out = floor_mask & self._carried(cut, then, here)
-        return out if out.any() else None
+        """The part of ``floor_mask`` that lies behind something the last parallax test
+        saw standing (`floor_before_standing`) or that the last walls test found to be a
+        wall's lower part (`wall_surfaces`), moved with the floor homography: exact at the
+        surface's foot (on the floor) and off by its parallax above it, for a few frames
+        at most. None when there is none."""
+        out: NDArray[np.bool_] | None = None
+        for carried in (self._cut, self._wall_cut):
+            if carried is None or now_s - carried[2] > PARALLAX_CARRY_S:
+                continue
+            cut, then, _ = carried
+            moved = floor_mask & self._carried(cut, then, here)
+            out = moved if out is None else out | moved
+        return out if out is not None and out.any() else None
 
     def _carried(
         self,

@@ -29,6 +29,9 @@ NEIGHBOUR_COLUMNS = 8
 this near (at the search's resolution) that have one."""
 
 
+MIN_FOOT_RUN = 3
+"""A wall's foot found below the mask's floor end (`wall_surfaces`) holds in at least
+this many adjacent columns at the search's resolution."""
 MAX_SPLITS = 3
 """Splits per column at most (floor, rug, threshold under one surface)."""
 BASE_MEDIAN_HALF = 2
@@ -283,16 +286,37 @@ def _grow_sideways(
     return grown
 
 
+@dataclass(frozen=True)
+class WallSurfaces:
+    """What `wall_surfaces` proved standing, as image masks of its frame."""
+
+    walls: NDArray[np.bool_]
+    """Not-floor pixels of surfaces standing where the floor mask ends."""
+    floor_part: NDArray[np.bool_]
+    """Floor-mask pixels that are the lower part of such a surface: its colour runs on
+    unchanged below where the mask's floor ends, down to its true foot."""
+
+
 def walls_across_horizon(
     floor_mask: NDArray[np.bool_],
     image_bgr: NDArray[np.uint8],
     horizon_row: NDArray[np.int64],
     params: HorizonParams | None = None,
 ) -> NDArray[np.bool_]:
-    """The not-floor pixels that belong to surfaces standing up where the floor ends: in
-    each column whose floor runs up from the bottom of the image, the not-floor run above
-    it, when that run reaches past the horizon and is one surface from its foot up (its
-    colour profile, foot to horizon, splits nowhere by ``min_step`` or more).
+    """The not-floor pixels of `wall_surfaces` (its ``walls``)."""
+    return wall_surfaces(floor_mask, image_bgr, horizon_row, params).walls
+
+
+def wall_surfaces(
+    floor_mask: NDArray[np.bool_],
+    image_bgr: NDArray[np.uint8],
+    horizon_row: NDArray[np.int64],
+    params: HorizonParams | None = None,
+) -> WallSurfaces:
+    """Surfaces standing where the floor ends: in each column whose floor runs up from
+    the bottom of the image, the not-floor run above it, when that run reaches past the
+    horizon and is one surface from its foot up (its colour profile, foot to horizon,
+    splits nowhere by ``min_step`` or more).
 
     Floor never reaches the horizon, so one surface that runs from where the floor ends
     to above the horizon stands there: a plain wall, whose lower part gives the parallax
@@ -301,12 +325,22 @@ def walls_across_horizon(
     unproven (a floor of exactly the wall's colour behind an edge would be taken for
     the wall).
 
-    Returns (H, W) bool, True on the run's pixels below the horizon in such columns.
+    The segmenter can take the lower part of such a surface for floor (a floor-coloured
+    box side: the mask stops halfway up it, where its shading drifts from the floor's).
+    Then the surface's colour runs on unchanged below the mask's floor end, and the one
+    real colour step of the whole column, horizon to bottom, lies lower: the surface's
+    true foot. When that step is ``min_step`` or more and everything above it is still
+    one surface, the mask's floor between its end and that foot stands (``floor_part``).
+    A wall on a real floor has its step where the mask ends, and a rug below changes
+    colour under a step already, so neither moves the foot.
+
+    Returns `WallSurfaces`, the walls' pixels below the horizon.
     """
     p = params if params is not None else HorizonParams()
     mask = _checked_mask(floor_mask, image_bgr, horizon_row)
     height, width = mask.shape
     walls = np.zeros_like(mask)
+    floor_part = np.zeros_like(mask)
     s = max(1, round(height / p.search_rows))
     small_mask = mask[::s, ::s]
     small_h, small_w = small_mask.shape
@@ -326,42 +360,134 @@ def walls_across_horizon(
     candidate = (bottom_run > 0) & (foot >= 0) & (run_top <= small_leak) & (foot >= small_horizon)
     cols = np.flatnonzero(candidate)
     if cols.size == 0:
-        return walls
+        return WallSurfaces(walls, floor_part)
     lab = _small_lab(image_bgr, (small_w, small_h))
     # The profile tested: from just above the horizon (by the leak margin) down to the
     # foot, less the rows just above it: shrunk, the foot's own row mixes the surface
     # with the floor, and a segmenter's floor ends a few pixels off the true junction.
     junction = 1 + max(1, round(p.min_above_frac * height / s))
-    lo, hi = small_leak[cols], np.maximum(foot[cols] - junction, 0)
-    in_span = (small_rows >= lo[None, :]) & (small_rows <= hi[None, :])
-    profile = lab[:, cols, :] * in_span[..., None]
-    csum = np.cumsum(profile, axis=0)
-    count = np.cumsum(in_span, axis=0).astype(np.float32)
-    index = np.arange(cols.size)
-    total_sum = csum[hi, index]
-    total_n = count[hi, index]
-    upper_sum, upper_n = csum, count  # rows <= k
-    lower_sum, lower_n = total_sum[None] - upper_sum, total_n[None] - upper_n
     min_rows = max(1, round(p.min_floor_frac * height / s))
-    with np.errstate(divide="ignore", invalid="ignore"):
-        step = np.linalg.norm(
-            upper_sum / upper_n[..., None] - lower_sum / lower_n[..., None], axis=2
-        )
-    splittable = in_span & (upper_n >= min_rows) & (lower_n >= min_rows) & np.isfinite(step)
-    # The best split (least squares: the largest drop of the sum of squares) and its step.
-    gain = np.where(splittable, upper_n * lower_n / total_n[None] * step**2, -1.0)
-    best = gain.argmax(axis=0)
+    lo, hi = small_leak[cols], np.maximum(foot[cols] - junction, 0)
+    profile = _ColumnProfiles(lab[:, cols, :])
+    _, step, total_n = profile.best_split(lo, hi, min_rows)
     # A run whose foot is too near the horizon to show its colour profile proves nothing.
-    one_surface = (total_n >= 2 * min_rows) & (
-        ~splittable[best, index] | (step[best, index] < p.min_step)
-    )
+    one_surface = (total_n >= 2 * min_rows) & ~(step >= p.min_step)
+    # Where the mask's floor ends with no edge (one colour across it) on such a surface,
+    # the whole column, horizon to bottom, is searched: its one real step, when it lies
+    # lower with one surface above it, is the surface's true foot.
+    lower_foot = one_surface & ~(profile.step_across(foot[cols], junction) >= p.min_step)
+    low_best = np.zeros_like(cols)
+    if lower_foot.any():
+        which = np.flatnonzero(lower_foot)
+        sub, sub_lo = profile.subset(which), lo[which]
+        best_row, low_step, _ = sub.best_split(sub_lo, np.full_like(sub_lo, small_h - 1), min_rows)
+        _, upper_step, _ = sub.best_split(sub_lo, np.maximum(best_row - junction, 0), min_rows)
+        lower_foot[which] = (
+            (low_step >= p.min_step)
+            # A foot is an edge: its step shows across a few rows, where a reflection in
+            # a glossy floor or a shadow fades over many.
+            & (sub.step_across(best_row, junction) >= p.min_step)
+            & (best_row > foot[cols[which]] + junction)
+            & ~(upper_step >= p.min_step)
+        )
+        low_best[which] = best_row
+        # A surface has width: a lone column is an edge's streak (a reflection's rim).
+        lower_foot &= _in_runs(cols[lower_foot], small_w, MIN_FOOT_RUN)[cols]
     small_walls = np.zeros_like(small_mask)
     wall_cols = cols[one_surface]
     small_walls[:, wall_cols] = (small_rows >= small_horizon[wall_cols][None, :]) & (
         small_rows <= foot[wall_cols][None, :]
     )
-    up = cv2.resize(
-        small_walls.view(np.uint8), (width, height), interpolation=cv2.INTER_NEAREST
-    ).astype(bool)
-    walls[...] = up & ~mask
-    return walls
+    small_part = np.zeros_like(small_mask)
+    part_cols = cols[lower_foot]
+    small_part[:, part_cols] = (small_rows > foot[part_cols][None, :]) & (
+        small_rows <= low_best[lower_foot][None, :]
+    )
+    size = (width, height)
+    walls[...] = _upsampled(small_walls, size) & ~mask
+    floor_part[...] = _upsampled(small_part, size) & mask
+    return WallSurfaces(walls, floor_part)
+
+
+class _ColumnProfiles:
+    """Cumulative colour sums down each column of a (rows, columns, 3) CIELAB array,
+    for the best two-part split of any span of rows (least squares)."""
+
+    def __init__(self, lab: NDArray[np.float32]) -> None:
+        self.csum = np.cumsum(lab, axis=0, dtype=np.float64)
+        self.index = np.arange(lab.shape[1])
+        self.rows = np.arange(lab.shape[0])[:, None]
+
+    def subset(self, which: NDArray[np.int64]) -> _ColumnProfiles:
+        """The profiles of the columns ``which`` only."""
+        out = _ColumnProfiles.__new__(_ColumnProfiles)
+        out.csum = self.csum[:, which]
+        out.index = np.arange(which.size)
+        out.rows = self.rows
+        return out
+
+    def best_split(
+        self, lo: NDArray[np.int64], hi: NDArray[np.int64], min_rows: int
+    ) -> tuple[NDArray[np.int64], NDArray[np.float64], NDArray[np.int64]]:
+        """Per column, the split row k of its rows [lo, hi] (the upper part [lo, k], the
+        lower part (k, hi], each at least ``min_rows`` long) that removes the most of
+        the span's sum of squares; the colour step (CIELAB distance of the two parts'
+        means) there, NaN where no split fits; and the span's length."""
+        index, rows = self.index, self.rows
+        before_lo = np.where(lo > 0, lo - 1, 0)
+        start = np.where((lo > 0)[:, None], self.csum[before_lo, index], 0.0)
+        total_n = np.maximum(hi - lo + 1, 0)
+        total_sum = self.csum[hi, index] - start
+        upper_n = (rows - lo[None, :] + 1).astype(np.float64)
+        upper_sum = self.csum - start[None]
+        lower_n = total_n[None, :] - upper_n
+        lower_sum = total_sum[None] - upper_sum
+        splittable = (
+            (rows >= lo[None, :])
+            & (rows <= hi[None, :])
+            & (upper_n >= min_rows)
+            & (lower_n >= min_rows)
+        )
+        with np.errstate(divide="ignore", invalid="ignore"):
+            step = np.linalg.norm(
+                upper_sum / upper_n[..., None] - lower_sum / lower_n[..., None], axis=2
+            )
+            gain = np.where(splittable, upper_n * lower_n / total_n[None] * step**2, -1.0)
+        best = gain.argmax(axis=0)
+        found = splittable[best, index]
+        return best, np.where(found, step[best, index], np.nan), total_n
+
+    def step_across(self, row: NDArray[np.int64], rows: int) -> NDArray[np.float64]:
+        """Per column, the colour step between the ``rows`` rows ending at ``row`` and
+        the ``rows`` rows after it (fewer at the array's ends)."""
+        last = self.csum.shape[0] - 1
+        top = np.clip(row - rows, -1, last)
+        bottom = np.clip(row + rows, 0, last)
+        row = np.clip(row, 0, last)
+        index = self.index
+
+        def upto(r: NDArray[np.int64]) -> NDArray[np.float64]:
+            return np.where((r >= 0)[:, None], self.csum[np.maximum(r, 0), index], 0.0)
+
+        above = (upto(row) - upto(top)) / np.maximum(row - top, 1)[:, None]
+        below = (upto(bottom) - upto(row)) / np.maximum(bottom - row, 1)[:, None]
+        return np.asarray(np.linalg.norm(above - below, axis=1), np.float64)
+
+
+def _in_runs(columns: NDArray[np.int64], width: int, length: int) -> NDArray[np.bool_]:
+    """(width,) bool: True on the given columns that lie in runs of at least ``length``
+    adjacent given columns."""
+    picked = np.zeros(width + 2, dtype=bool)
+    picked[columns + 1] = True
+    edges = np.flatnonzero(np.diff(picked.view(np.int8)))  # run starts, then ends
+    out = np.zeros(width, dtype=bool)
+    for start, end in zip(edges[::2], edges[1::2], strict=True):
+        if end - start >= length:
+            out[start:end] = True
+    return out
+
+
+def _upsampled(small: NDArray[np.bool_], size: tuple[int, int]) -> NDArray[np.bool_]:
+    return np.asarray(
+        cv2.resize(small.view(np.uint8), size, interpolation=cv2.INTER_NEAREST), dtype=bool
+    )

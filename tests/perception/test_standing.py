@@ -14,6 +14,7 @@ from app.perception.standing import (
     HorizonParams,
     horizon_rows,
     standing_across_horizon,
+    wall_surfaces,
     walls_across_horizon,
 )
 
@@ -32,7 +33,9 @@ def _lab_distance(bgr_a: tuple[int, int, int], bgr_b: tuple[int, int, int]) -> f
     return float(np.linalg.norm(lab[0, 0] - lab[0, 1]))
 
 
-def _scene(box_bgr: tuple[int, int, int] = BOX_BGR) -> np.ndarray:
+def _scene(
+    box_bgr: tuple[int, int, int] = BOX_BGR, box_cols: tuple[int, int] = BOX_COLS
+) -> np.ndarray:
     """Grey wall above row 50 (the far wall's foot, below the horizon), a textured
     wood floor below, a flat box on it."""
     rng = np.random.default_rng(0)
@@ -40,7 +43,7 @@ def _scene(box_bgr: tuple[int, int, int] = BOX_BGR) -> np.ndarray:
     image[:] = (150, 150, 150)
     floor = np.array(FLOOR_BGR, float) + rng.normal(0, 3, (H - 50, W, 1))
     image[50:] = np.clip(floor, 0, 255).astype(np.uint8)
-    image[BOX_ROWS[0] : BOX_ROWS[1], BOX_COLS[0] : BOX_COLS[1]] = box_bgr
+    image[BOX_ROWS[0] : BOX_ROWS[1], box_cols[0] : box_cols[1]] = box_bgr
     return image
 
 
@@ -237,6 +240,83 @@ def test_what_ends_below_the_horizon_or_has_no_floor_under_it_is_not_a_wall() ->
     assert not walls[:, :50].any() and walls[HORIZON:50, 50:].all()
     with pytest.raises(ValueError, match="must agree"):
         walls_across_horizon(_floor_from(50), _scene(), np.full(W - 1, HORIZON))
+
+
+# -- wall_surfaces: a surface's lower part the mask took for floor ------------------------
+
+LOWER_PART_FROM = 100  # the mask calls the box's face floor from this row down
+
+
+def _half_box_floor() -> np.ndarray:
+    """The scene's floor, with the box's face floor from `LOWER_PART_FROM` down to its
+    base (a segmenter whose floor model reached halfway up a floor-coloured box)."""
+    mask = _floor_from(50)
+    mask[:LOWER_PART_FROM, BOX_COLS[0] : BOX_COLS[1]] = False
+    return mask
+
+
+def test_the_lower_part_of_a_surface_the_mask_took_for_floor_stands_down_to_its_foot() -> None:
+    # The box's face (rows 10-149) runs from above the horizon down past where the mask's
+    # floor ends (row 100) in one colour; its foot is the column's one real step, at
+    # its base. Standing: the mask's floor from row 100 to the base, in the box's columns.
+    surfaces = wall_surfaces(_half_box_floor(), _scene(), np.full(W, HORIZON), PARAMS)
+    expected = np.zeros((H, W), bool)
+    expected[LOWER_PART_FROM : BOX_ROWS[1], BOX_COLS[0] : BOX_COLS[1]] = True
+    # To the row, but for the floor's sensor noise at the base line.
+    _assert_outline_within(surfaces.floor_part, expected, 1)
+    assert (surfaces.floor_part != expected).sum() <= 0.02 * (BOX_COLS[1] - BOX_COLS[0])
+    # The face above the mask's floor is a wall as before; the wall beside it too.
+    assert surfaces.walls[HORIZON:LOWER_PART_FROM, BOX_COLS[0] : BOX_COLS[1]].all()
+    assert surfaces.walls[HORIZON:50, : BOX_COLS[0]].all()
+    assert not (surfaces.walls & _half_box_floor()).any()
+
+
+def test_a_wall_on_its_floor_a_fading_reflection_and_a_lone_streak_move_no_foot() -> None:
+    horizon = np.full(W, HORIZON)
+    # The mask ends where the box meets the floor: an edge there, nothing below stands.
+    mask = _floor_from(50) & ~_box_mask()
+    assert not wall_surfaces(mask, _scene(), horizon, PARAMS).floor_part.any()
+    # Below the half-box, the face's colour fades into the floor's over 60 rows (its
+    # reflection in a glossy floor): the step is real but no edge.
+    image = _scene()
+    face, floor = np.array(BOX_BGR, float), np.array(FLOOR_BGR, float)
+    for k, row in enumerate(range(BOX_ROWS[1], BOX_ROWS[1] + 60)):
+        image[row, BOX_COLS[0] : BOX_COLS[1]] = np.round(face + (floor - face) * k / 60)
+    image[BOX_ROWS[1] - 40 : BOX_ROWS[1], BOX_COLS[0] : BOX_COLS[1]] = BOX_BGR
+    assert not wall_surfaces(_half_box_floor(), image, horizon, PARAMS).floor_part.any()
+    # Two columns of the face alone: a streak, not a surface.
+    narrow = _floor_from(50)
+    narrow[:LOWER_PART_FROM, 150:152] = False
+    narrow_box = _scene(box_cols=(150, 152))
+    assert not wall_surfaces(narrow, narrow_box, horizon, PARAMS).floor_part.any()
+    # Three columns are a surface (the search's resolution is the image's here).
+    narrow[:LOWER_PART_FROM, 150:153] = False
+    wide_enough = _scene(box_cols=(150, 153))
+    assert wall_surfaces(narrow, wide_enough, horizon, PARAMS).floor_part[:, 150:153].any()
+
+
+def test_rendered_floor_coloured_ottomans_side_stands_where_the_mask_took_it_for_floor() -> None:
+    """The home's ottoman (wood-coloured, 0.40 m), passed on its east side: the shipped
+    segmenter calls the lower half of its lit face floor; the walls test finds that
+    half standing, and hardly any true floor."""
+    from app.config import load_config
+    from app.mapping.frames import Pose2D
+    from app.mapping.ground_map import image_horizon_rows
+    from app.perception.pipeline import FloorSegmenter
+    from app.sim.setup import camera_model, renderer_from_config, sim_floor_calibration
+
+    root = Path(__file__).resolve().parents[2]
+    config = load_config(root / "config.toml", sim={"world_file": "home"})
+    renderer = renderer_from_config(config)
+    horizon = image_horizon_rows(sim_floor_calibration(camera_model(config)))
+    frame = renderer.render(Pose2D(4.3, 3.85, math.pi / 2))
+    mask = FloorSegmenter(config.perception).segment(frame.image).floor_mask
+    face_called_floor = mask & ~frame.floor_mask
+    assert face_called_floor.sum() > 20000
+    part = wall_surfaces(mask, frame.image, horizon).floor_part
+    # Not the columns where the face reaches the image's bottom: no foot shows there.
+    assert (part & face_called_floor).sum() >= 0.3 * face_called_floor.sum()
+    assert (part & frame.floor_mask).sum() <= 0.01 * part.sum()
 
 
 def test_rendered_walls_stand_and_the_floor_never_does() -> None:
