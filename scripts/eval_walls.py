@@ -1,8 +1,9 @@
-"""Score the walls proven by the horizon (`standing.walls_across_horizon`) on simulated views.
+"""Score the walls proven by the horizon (`standing.wall_surfaces`) on simulated views.
 
 Random poses at least 0.3 m from any obstacle in each named world (a shipped world's
 name or a .toml path), seen through the shipped perception method's floor mask. Printed
-per world: the marked pixels on true obstacles, and the marked pixels of true floor more
+per world, for the walls (not-floor pixels) and for the walls' lower parts the mask took
+for floor: the marked pixels on true obstacles, and the marked pixels of true floor more
 than ``FOOT_PX`` below any true obstacle pixel of their column (a segmenter's floor ends
 a few pixels short of a wall's true foot, and the wall is taken from there), with the
 views that have more than 500 of those.
@@ -25,7 +26,7 @@ from app.config import DEFAULT_CONFIG_PATH, load_config
 from app.mapping.frames import Pose2D
 from app.mapping.ground_map import image_horizon_rows
 from app.perception.pipeline import FloorSegmenter
-from app.perception.standing import walls_across_horizon
+from app.perception.standing import wall_surfaces
 from app.sim.setup import camera_model, renderer_from_config, sim_floor_calibration
 
 FOOT_PX = 8
@@ -45,27 +46,32 @@ def main() -> None:
         world = renderer.world
         rng = np.random.default_rng(args.seed)
         x_min, y_min, x_max, y_max = world.bounds_m
-        views = on_obstacles = off = views_off = 0
+        views = 0
+        scores = {"walls": [0, 0, 0], "lower parts": [0, 0, 0]}  # on, off, views off
         while views < args.views:
             x, y = rng.uniform(x_min, x_max), rng.uniform(y_min, y_max)
             if world.clearance_m(x, y) < 0.3:
                 continue
             frame = renderer.render(Pose2D(x, y, rng.uniform(-math.pi, math.pi)))
             mask = segmenter.segment(frame.image).floor_mask
-            walls = walls_across_horizon(mask, frame.image, horizon)
+            surfaces = wall_surfaces(mask, frame.image, horizon)
             obstacle = ~frame.floor_mask
             near_foot = obstacle.copy()
             for k in range(1, FOOT_PX + 1):
                 near_foot[k:] |= obstacle[:-k]
-            far = int((walls & ~near_foot).sum())
-            on_obstacles += int((walls & obstacle).sum())
-            off += far
-            views_off += far > 500
+            for kind, marked in (("walls", surfaces.walls), ("lower parts", surfaces.floor_part)):
+                far = int((marked & ~near_foot).sum())
+                score = scores[kind]
+                score[0] += int((marked & obstacle).sum())
+                score[1] += far
+                score[2] += far > 500
             views += 1
-        print(
-            f"{name}: {views} views; marked {on_obstacles} px on true obstacles, {off} px of "
-            f"true floor more than {FOOT_PX} px below one ({views_off} views with > 500)"
-        )
+        for kind, (on_obstacles, off, views_off) in scores.items():
+            print(
+                f"{name} {kind}: {views} views; marked {on_obstacles} px on true obstacles,"
+                f" {off} px of true floor more than {FOOT_PX} px below one"
+                f" ({views_off} views with > 500)"
+            )
 
 
 if __name__ == "__main__":
