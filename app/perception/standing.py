@@ -368,7 +368,7 @@ def wall_surfaces(
     junction = 1 + max(1, round(p.min_above_frac * height / s))
     min_rows = max(1, round(p.min_floor_frac * height / s))
     lo, hi = small_leak[cols], np.maximum(foot[cols] - junction, 0)
-    profile = _ColumnProfiles(lab[:, cols, :])
+    profile = _ColumnProfiles.of(lab[:, cols, :])
     _, step, total_n = profile.best_split(lo, hi, min_rows)
     # A run whose foot is too near the horizon to show its colour profile proves nothing.
     one_surface = (total_n >= 2 * min_rows) & ~(step >= p.min_step)
@@ -410,21 +410,21 @@ def wall_surfaces(
 
 
 class _ColumnProfiles:
-    """Cumulative colour sums down each column of a (rows, columns, 3) CIELAB array,
-    for the best two-part split of any span of rows (least squares)."""
+    """Cumulative colour sums down each column of a (rows, columns, 3) CIELAB array
+    (``csum``, `of`), for the best two-part split of any span of rows (least squares)."""
 
-    def __init__(self, lab: NDArray[np.float32]) -> None:
-        self.csum = np.cumsum(lab, axis=0, dtype=np.float64)
-        self.index = np.arange(lab.shape[1])
-        self.rows = np.arange(lab.shape[0])[:, None]
+    def __init__(self, csum: NDArray[np.float64]) -> None:
+        self.csum = csum
+        self.index = np.arange(csum.shape[1])
+        self.rows = np.arange(csum.shape[0])[:, None]
+
+    @classmethod
+    def of(cls, lab: NDArray[np.float32]) -> _ColumnProfiles:
+        return cls(np.cumsum(lab, axis=0, dtype=np.float64))
 
     def subset(self, which: NDArray[np.int64]) -> _ColumnProfiles:
         """The profiles of the columns ``which`` only."""
-        out = _ColumnProfiles.__new__(_ColumnProfiles)
-        out.csum = self.csum[:, which]
-        out.index = np.arange(which.size)
-        out.rows = self.rows
-        return out
+        return _ColumnProfiles(self.csum[:, which])
 
     def best_split(
         self, lo: NDArray[np.int64], hi: NDArray[np.int64], min_rows: int
