@@ -297,16 +297,6 @@ class WallSurfaces:
     unchanged below where the mask's floor ends, down to its true foot."""
 
 
-def walls_across_horizon(
-    floor_mask: NDArray[np.bool_],
-    image_bgr: NDArray[np.uint8],
-    horizon_row: NDArray[np.int64],
-    params: HorizonParams | None = None,
-) -> NDArray[np.bool_]:
-    """The not-floor pixels of `wall_surfaces` (its ``walls``)."""
-    return wall_surfaces(floor_mask, image_bgr, horizon_row, params).walls
-
-
 def wall_surfaces(
     floor_mask: NDArray[np.bool_],
     image_bgr: NDArray[np.uint8],

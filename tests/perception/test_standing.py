@@ -15,7 +15,6 @@ from app.perception.standing import (
     horizon_rows,
     standing_across_horizon,
     wall_surfaces,
-    walls_across_horizon,
 )
 
 H, W = 240, 320
@@ -197,7 +196,7 @@ def test_a_rendered_floor_coloured_box_is_found_standing() -> None:
     assert (standing & frame.floor_mask).sum() <= 0.02 * frame.floor_mask.sum()
 
 
-# -- walls_across_horizon ---------------------------------------------------------------
+# -- wall_surfaces: walls -----------------------------------------------------------------
 
 
 def _floor_from(row: int) -> np.ndarray:
@@ -209,7 +208,7 @@ def _floor_from(row: int) -> np.ndarray:
 def test_a_plain_wall_from_the_floors_end_past_the_horizon_stands() -> None:
     # The scene's grey wall meets the floor at row 50, 10 rows below the horizon; the
     # mask's floor ends there. Standing: the wall below the horizon, every column.
-    walls = walls_across_horizon(_floor_from(50), _scene(), np.full(W, HORIZON), PARAMS)
+    walls = wall_surfaces(_floor_from(50), _scene(), np.full(W, HORIZON), PARAMS).walls
     expected = np.zeros((H, W), bool)
     expected[HORIZON:50] = True
     np.testing.assert_array_equal(walls, expected)
@@ -221,7 +220,7 @@ def test_a_rug_between_the_floor_and_the_wall_is_not_taken_for_the_wall() -> Non
     image = _scene()
     image[50:90] = (40, 40, 90)
     assert _lab_distance((40, 40, 90), (150, 150, 150)) > 10
-    walls = walls_across_horizon(_floor_from(90), image, np.full(W, HORIZON), PARAMS)
+    walls = wall_surfaces(_floor_from(90), image, np.full(W, HORIZON), PARAMS).walls
     assert not walls.any()
 
 
@@ -231,15 +230,15 @@ def test_what_ends_below_the_horizon_or_has_no_floor_under_it_is_not_a_wall() ->
     mask = _floor_from(50) & ~_box_mask()
     low_box = mask.copy()
     low_box[: BOX_ROWS[1] - 60] |= _box_mask()[: BOX_ROWS[1] - 60]  # the box's top is floor
-    walls = walls_across_horizon(low_box, image, np.full(W, HORIZON), PARAMS)
+    walls = wall_surfaces(low_box, image, np.full(W, HORIZON), PARAMS).walls
     assert not walls[:, BOX_COLS[0] : BOX_COLS[1]].any()
     # Columns whose bottom row is no floor (a wall right ahead): nothing to stand on.
     no_bottom = _floor_from(50)
     no_bottom[-1, :50] = False
-    walls = walls_across_horizon(no_bottom, _scene(), np.full(W, HORIZON), PARAMS)
+    walls = wall_surfaces(no_bottom, _scene(), np.full(W, HORIZON), PARAMS).walls
     assert not walls[:, :50].any() and walls[HORIZON:50, 50:].all()
     with pytest.raises(ValueError, match="must agree"):
-        walls_across_horizon(_floor_from(50), _scene(), np.full(W - 1, HORIZON))
+        wall_surfaces(_floor_from(50), _scene(), np.full(W - 1, HORIZON))
 
 
 # -- wall_surfaces: a surface's lower part the mask took for floor ------------------------
@@ -337,9 +336,7 @@ def test_rendered_walls_stand_and_the_floor_never_does() -> None:
     # Facing the left room's walls from its middle, and the doorway.
     for pose in [(2.0, 3.0, 0.0), (2.0, 3.0, math.pi / 2), (2.0, 3.0, math.pi), (3.2, 3.0, 0.1)]:
         frame = renderer.render(Pose2D(*pose))
-        walls = walls_across_horizon(
-            segmenter.segment(frame.image).floor_mask, frame.image, horizon
-        )
+        walls = wall_surfaces(segmenter.segment(frame.image).floor_mask, frame.image, horizon).walls
         obstacle = ~frame.floor_mask
         # The segmenter's floor ends a few pixels short of a wall's true foot, and the
         # wall is taken from there: true floor within 8 px below an obstacle is its foot.
