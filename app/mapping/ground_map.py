@@ -525,13 +525,13 @@ class GroundMapper:
         to move a handed-out test's pose as the views were moved meanwhile..."""
         self._corrections_made = 0
         """...and how many there have been."""
-        self._confirmed: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
+        self._confirmed: _Carried | None = None
         self._zone: tuple[NDArray[np.bool_], NDArray[np.bool_]] | None = None
         """The last safe-zone mask handed to `update` and the bird's-eye cells it shows."""
-        self._cut: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
+        self._cut: _Carried | None = None
         """The colour floor the last parallax test found behind something standing (image
         mask), where and when: carried, like ``_confirmed``, to the frames between."""
-        self._wall_cut: tuple[NDArray[np.bool_], tuple[float, float, float], float] | None = None
+        self._wall_cut: _Carried | None = None
         """The colour floor the last walls test found to be a wall's lower part, carried
         the same way (the walls test runs on one frame in several)."""
         grid = self.birdseye.grid
@@ -956,15 +956,9 @@ class GroundMapper:
         ]
         self._views.clear()
         self._views.extend(views)
-        if self._confirmed is not None and self._confirmed[2] > after_s:
-            added, then, at_s = self._confirmed
-            self._confirmed = (added, _moved(then, T_corrected_odom), at_s)
-        if self._cut is not None and self._cut[2] > after_s:
-            cut, then, at_s = self._cut
-            self._cut = (cut, _moved(then, T_corrected_odom), at_s)
-        if self._wall_cut is not None and self._wall_cut[2] > after_s:
-            cut, then, at_s = self._wall_cut
-            self._wall_cut = (cut, _moved(then, T_corrected_odom), at_s)
+        self._confirmed = _carry_moved(self._confirmed, T_corrected_odom, after_s)
+        self._cut = _carry_moved(self._cut, T_corrected_odom, after_s)
+        self._wall_cut = _carry_moved(self._wall_cut, T_corrected_odom, after_s)
 
     def snapshot(self) -> SavedMap:
         """A read-only copy of the map for saving (`app.mapping.map_files.save_map`); call
@@ -1107,6 +1101,22 @@ def _moved(
     """A pose (x_m, y_m, theta_rad) moved by a correction."""
     p = T_corrected_odom.compose(Pose2D(*pose))
     return (p.x_m, p.y_m, p.theta_rad)
+
+
+_Carried = tuple[NDArray[np.bool_], tuple[float, float, float], float]
+"""A tested frame's image mask carried to later frames: the mask, its frame's pose, its
+time (`GroundMapper._confirmed`, ``_cut``, ``_wall_cut``)."""
+
+
+def _carry_moved(
+    carried: _Carried | None, T_corrected_odom: Pose2D, after_s: float
+) -> _Carried | None:
+    """``carried`` with its pose moved by a correction when its frame came after
+    ``after_s``."""
+    if carried is None or carried[2] <= after_s:
+        return carried
+    mask, then, at_s = carried
+    return (mask, _moved(then, T_corrected_odom), at_s)
 
 
 def _camera_xy(
