@@ -281,7 +281,6 @@ def test_a_wall_on_its_floor_a_fading_reflection_and_a_lone_streak_move_no_foot(
     face, floor = np.array(BOX_BGR, float), np.array(FLOOR_BGR, float)
     for k, row in enumerate(range(BOX_ROWS[1], BOX_ROWS[1] + 60)):
         image[row, BOX_COLS[0] : BOX_COLS[1]] = np.round(face + (floor - face) * k / 60)
-    image[BOX_ROWS[1] - 40 : BOX_ROWS[1], BOX_COLS[0] : BOX_COLS[1]] = BOX_BGR
     assert not wall_surfaces(_half_box_floor(), image, horizon, PARAMS).floor_part.any()
     # Two columns of the face alone: a streak, not a surface.
     narrow = _floor_from(50)
