@@ -8,7 +8,7 @@ scored too: the share of it off the true floor, and of the rest, the share withi
 ``OUTLINE_PX`` of the floor's outline (an edge's evidence spreads onto its neighbours
 in the half-resolution images the test works on).
 
-    .venv/bin/python scripts/eval_parallax.py --seed 0
+    .venv/bin/python scripts/eval_parallax.py --seed 0 [--world home] [--soft-sigma-px 0]
 """
 
 from __future__ import annotations
@@ -16,6 +16,7 @@ from __future__ import annotations
 import argparse
 import math
 import time
+from dataclasses import replace
 from pathlib import Path
 
 import cv2
@@ -35,17 +36,30 @@ def main() -> None:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
     parser.add_argument("--seed", type=int, default=0)
     parser.add_argument("--views", type=int, default=40)
+    parser.add_argument("--world", default="two-rooms", help="a shipped world or a .toml path")
+    parser.add_argument(
+        "--soft-sigma-px",
+        type=float,
+        default=None,
+        help="PlanarParams.soft_sigma_px (default: the shipped value; 0: no second look)",
+    )
     args = parser.parse_args()
-    config = load_config(ROOT / "config.toml")
+    params = planar.PlanarParams()
+    if args.soft_sigma_px is not None:
+        params = replace(params, soft_sigma_px=args.soft_sigma_px)
+    config = load_config(ROOT / "config.toml", sim={"world_file": args.world})
     renderer = renderer_from_config(config)
     H_ground_from_image = sim_floor_calibration(camera_model(config)).H_ground_from_image
     camera_xy = (config.camera.x_m, config.camera.y_m)
     segmenter = FloorSegmenter(config.perception)
     world = renderer.world
     rng = np.random.default_rng(args.seed)
-    poses = [(3.95, 3.05, 0.0), (3.7, 2.45, 0.15)]
+    # Two views facing the two-room flat's doorway, then random ones inside the walls.
+    poses = [(3.95, 3.05, 0.0), (3.7, 2.45, 0.15)] if world.spec.name == "two rooms" else []
+    x_min, y_min, x_max, y_max = world.bounds_m
     while len(poses) < args.views:
-        x, y, t = rng.uniform(0.4, 7.6), rng.uniform(0.4, 5.6), rng.uniform(-math.pi, math.pi)
+        x, y = rng.uniform(x_min + 0.4, x_max - 0.4), rng.uniform(y_min + 0.4, y_max - 0.4)
+        t = rng.uniform(-math.pi, math.pi)
         if world.clearance_m(x, y) > 0.35:
             poses.append((x, y, t))
     added_true = added_false = colour_true = truth_total = views = 0
@@ -63,7 +77,7 @@ def main() -> None:
         gray_ref = cv2.cvtColor(ref_frame.image, cv2.COLOR_BGR2GRAY)
         start = time.perf_counter()
         confirmed = planar.confirm_floor(
-            colour, gray_cur, gray_ref, H_ground_from_image, ref, (x, y, t), camera_xy
+            colour, gray_cur, gray_ref, H_ground_from_image, ref, (x, y, t), camera_xy, params
         )
         times.append(time.perf_counter() - start)
         start = time.perf_counter()
@@ -75,6 +89,7 @@ def main() -> None:
             ref,
             (x, y, t),
             camera_xy,
+            params,
             return_standing=True,
         )
         standing_times.append(time.perf_counter() - start)

@@ -73,6 +73,13 @@ class PlanarParams:
     foot_margin_px : a walk that ends at a standing pixel this close above its last
         confirmed one gives these rows back (the foot of what stands).
     downscale : `confirm_floor` works on images this many times smaller.
+    soft_sigma_px : what stands is checked again with the current frame smoothed by
+        this much in all: seen from farther away, the reference holds a strong edge
+        less sharply (foreshortened by up to (D / (D + baseline))^2 down the image,
+        0.6-0.8 at 0.5-1 m), and the sharper current frame mismatches it there whatever
+        the shift. On a synthetic threshold strip 0.9 m ahead, 0.9-1.2 leave none of
+        its edges standing, 0.7 leaves 38 % and 1.6 all. No more than ``blur_sigma_px``:
+        no second check.
     """
 
     blur_sigma_px: float = 0.5
@@ -87,6 +94,7 @@ class PlanarParams:
     max_range_m: float = 2.5
     foot_margin_px: int = 2
     downscale: int = 2
+    soft_sigma_px: float = 1.0
 
 
 SHIFTS_PX = (-2.0, -1.0, -0.5, 0.0, 0.5, 1.0, 2.0)
@@ -200,8 +208,13 @@ def _evidence(
     # Sobel: 8 times the gradient in grey levels per pixel (OpenCV: vectorised, no GIL).
     grad_u = np.asarray(cv2.Sobel(cur, cv2.CV_32F, 1, 0, ksize=3), np.float32)
     grad_v = np.asarray(cv2.Sobel(cur, cv2.CV_32F, 0, 1, ksize=3), np.float32)
+    extra = math.sqrt(max(p.soft_sigma_px**2 - p.blur_sigma_px**2, 0.0))
+    soft = cur
+    if extra > 0.0:
+        soft = np.ascontiguousarray(cv2.GaussianBlur(cur, (0, 0), extra), dtype=np.float32)
     _parallax_search(
         cur,
+        soft,
         grad_u,
         grad_v,
         ref,
@@ -217,6 +230,7 @@ def _evidence(
         float(p.standing_min_px),
         float(p.match_max),
         float(p.mismatch_min),
+        extra > 0.0,
         on_floor,
         standing,
         tested,
@@ -230,84 +244,29 @@ of equal costs, so a tie goes to the smaller parallax."""
 
 
 @numba.njit(cache=True, nogil=True)
-def _parallax_search(
+def _shifted_differences(
     cur: NDArray[np.float32],
-    grad_u: NDArray[np.float32],
-    grad_v: NDArray[np.float32],
-    ref: NDArray[np.float32],
-    H_ref_from_cur: NDArray[np.float64],
+    flat_ref: NDArray[np.float32],
+    hr: int,
+    wr: int,
+    m: NDArray[np.float64],
     epipole_u: float,
     epipole_v: float,
-    row_from: int,
-    row_to: NDArray[np.int64],
+    needed: NDArray[np.bool_],
+    a0: int,
     shifts: NDArray[np.float64],
-    window: int,
-    gradient_min: float,
-    planar_max: float,
-    standing_min: float,
-    match_max: float,
-    mismatch_min: float,
-    on_floor: NDArray[np.bool_],
-    standing: NDArray[np.bool_],
-    tested: NDArray[np.bool_],
+    off_view: np.float32,
+    diff: NDArray[np.float32],
 ) -> None:
-    """The search of `parallax_evidence` for the pixels (v, u) of ``cur`` with
-    row_from <= v < row_to[u], into the three masks; ``grad_u``, ``grad_v`` are
-    ``cur``'s gradient, in the units of ``gradient_min``.
-
-    Most pixels lack texture, so the textured ones are found first and the reference is
-    sampled only in their windows. It is sampled straight through the homography (one
-    bilinear interpolation, not a warp and then a remap), linearised along each
-    epipolar line (a few hundredths of a pixel off at the ends of the search). A sample
-    needing pixels outside the reference makes its shift's window unusable."""
-    h, w = cur.shape
-    hr, wr = ref.shape
+    """``diff[v - a0, u * n + k]``: |cur - ref| at the pixel (v, u) of ``cur`` moved
+    ``shifts[k]`` pixels towards the epipole and put in the reference through the
+    homography ``m`` (one bilinear sample), for the pixels ``needed[v - a0, u]``;
+    ``off_view`` where the sample needs pixels outside the reference."""
+    w = cur.shape[1]
     n = shifts.shape[0]
-    half = window // 2
-    # A difference standing for "outside the reference view": above any window's sum of
-    # real differences (window**2 * 255), so a window holding one is recognised.
-    off_view = np.float32(max(1e5, 1000.0 * window * window))
-    m = H_ref_from_cur
     s_lo = shifts.min()
     s_hi = shifts.max()
-    if hr < 2 or wr < 2:
-        return
-    r0 = max(row_from, 1)
-    r1 = 0
-    for u in range(w):
-        r1 = max(r1, min(row_to[u], h - 1))
-    if r1 <= r0:
-        return
-    a0 = max(r0 - half, 0)  # the rows the windows read
-    a1 = min(r1 + half, h)
-    # 1. Texture across the epipolar line, and the pixels the windows of textured
-    # pixels cover (a textured pixel's row span, then those of rows near it).
-    textured = np.zeros((r1 - r0, w), np.bool_)
-    spans = np.zeros((r1 - r0, w), np.bool_)
-    limit = np.float32(gradient_min * gradient_min)
-    for v in range(r0, r1):
-        to_v = np.float32(epipole_v - v)  # towards the epipole (not normalised)
-        for u in range(1, w - 1):
-            if v >= row_to[u]:
-                continue
-            to_u = np.float32(epipole_u - u)
-            norm2 = to_u * to_u + to_v * to_v
-            along = grad_u[v, u] * to_u + grad_v[v, u] * to_v
-            if along * along < limit * norm2 or norm2 < 1e-6:
-                continue
-            textured[v - r0, u] = True
-            for x in range(max(u - half, 0), min(u + half + 1, w)):
-                spans[v - r0, x] = True
-    needed = np.zeros((a1 - a0, w), np.bool_)
-    for v in range(r0, r1):
-        for y in range(max(v - half, a0), min(v + half + 1, a1)):
-            for x in range(w):
-                needed[y - a0, x] |= spans[v - r0, x]
-    # 2. |cur - ref| at every shift along the epipolar line where a window needs it
-    # (only those entries are ever read).
-    diff = np.empty((a1 - a0, w * n), np.float32)
-    flat_ref = ref.reshape(hr * wr)  # a view (C-contiguous)
-    for v in range(a0, a1):
+    for v in range(a0, a0 + needed.shape[0]):
         ev = epipole_v - v
         x_row = m[0, 1] * v + m[0, 2]
         y_row = m[1, 1] * v + m[1, 2]
@@ -353,12 +312,119 @@ def _parallax_search(
                 top = flat_ref[i] + fx * (flat_ref[i + 1] - flat_ref[i])
                 low = flat_ref[i + wr] + fx * (flat_ref[i + wr + 1] - flat_ref[i + wr])
                 diff[v - a0, j + k] = abs(c - (top + fy * (low - top)))
+
+
+@numba.njit(cache=True, nogil=True)
+def _covered(marked: NDArray[np.bool_], r0: int, a0: int, a1: int, half: int) -> NDArray[np.bool_]:
+    """(a1 - a0, w): the pixels the windows (side 2 half + 1) of the pixels ``marked``
+    (rows r0 on) cover."""
+    rows, w = marked.shape
+    spans = np.zeros((rows, w), np.bool_)
+    for r in range(rows):
+        for u in range(w):
+            if marked[r, u]:
+                for x in range(max(u - half, 0), min(u + half + 1, w)):
+                    spans[r, x] = True
+    covered = np.zeros((a1 - a0, w), np.bool_)
+    for r in range(rows):
+        v = r + r0
+        for y in range(max(v - half, a0), min(v + half + 1, a1)):
+            for x in range(w):
+                covered[y - a0, x] |= spans[r, x]
+    return covered
+
+
+@numba.njit(cache=True, nogil=True)
+def _parallax_search(
+    cur: NDArray[np.float32],
+    cur_soft: NDArray[np.float32],
+    grad_u: NDArray[np.float32],
+    grad_v: NDArray[np.float32],
+    ref: NDArray[np.float32],
+    H_ref_from_cur: NDArray[np.float64],
+    epipole_u: float,
+    epipole_v: float,
+    row_from: int,
+    row_to: NDArray[np.int64],
+    shifts: NDArray[np.float64],
+    window: int,
+    gradient_min: float,
+    planar_max: float,
+    standing_min: float,
+    match_max: float,
+    mismatch_min: float,
+    soft_check: bool,
+    on_floor: NDArray[np.bool_],
+    standing: NDArray[np.bool_],
+    tested: NDArray[np.bool_],
+) -> None:
+    """The search of `parallax_evidence` for the pixels (v, u) of ``cur`` with
+    row_from <= v < row_to[u], into the three masks; ``grad_u``, ``grad_v`` are
+    ``cur``'s gradient, in the units of ``gradient_min``; ``cur_soft`` is ``cur``
+    smoothed to the reference's resolution (`PlanarParams.soft_sigma_px`), used when
+    ``soft_check``.
+
+    Most pixels lack texture, so the textured ones are found first and the reference is
+    sampled only in their windows. It is sampled straight through the homography (one
+    bilinear interpolation, not a warp and then a remap), linearised along each
+    epipolar line (a few hundredths of a pixel off at the ends of the search). A sample
+    needing pixels outside the reference makes its shift's window unusable."""
+    h, w = cur.shape
+    hr, wr = ref.shape
+    n = shifts.shape[0]
+    half = window // 2
+    # A difference standing for "outside the reference view": above any window's sum of
+    # real differences (window**2 * 255), so a window holding one is recognised.
+    off_view = np.float32(max(1e5, 1000.0 * window * window))
+    if hr < 2 or wr < 2:
+        return
+    r0 = max(row_from, 1)
+    r1 = 0
+    for u in range(w):
+        r1 = max(r1, min(row_to[u], h - 1))
+    if r1 <= r0:
+        return
+    a0 = max(r0 - half, 0)  # the rows the windows read
+    a1 = min(r1 + half, h)
+    flat_ref = ref.reshape(hr * wr)  # a view (C-contiguous)
+    # 1. Texture across the epipolar line.
+    textured = np.zeros((r1 - r0, w), np.bool_)
+    limit = np.float32(gradient_min * gradient_min)
+    for v in range(r0, r1):
+        to_v = np.float32(epipole_v - v)  # towards the epipole (not normalised)
+        for u in range(1, w - 1):
+            if v >= row_to[u]:
+                continue
+            to_u = np.float32(epipole_u - u)
+            norm2 = to_u * to_u + to_v * to_v
+            along = grad_u[v, u] * to_u + grad_v[v, u] * to_v
+            if along * along < limit * norm2 or norm2 < 1e-6:
+                continue
+            textured[v - r0, u] = True
+    # 2. |cur - ref| at every shift along the epipolar line where a textured pixel's
+    # window needs it (only those entries are ever read).
+    diff = np.empty((a1 - a0, w * n), np.float32)
+    _shifted_differences(
+        cur,
+        flat_ref,
+        hr,
+        wr,
+        H_ref_from_cur,
+        epipole_u,
+        epipole_v,
+        _covered(textured, r0, a0, a1, half),
+        a0,
+        shifts,
+        off_view,
+        diff,
+    )
     # 3. Each textured pixel's window costs (mean absolute difference) and verdict, from
     # the window's column sums, each computed once per row.
     column_sums = np.empty(w * n, np.float32)
     summed = np.empty(w, np.int64)  # the row whose sums column_sums holds, per column
     summed[:] = -1
     cost = np.empty(n, np.float32)
+    again = np.zeros((r1 - r0, w), np.bool_)  # standing for matching nowhere
     for v in range(r0, r1):
         y0_ = max(v - half, 0)
         y1_ = min(v + half + 1, h)
@@ -381,17 +447,99 @@ def _parallax_search(
             if cost[0] >= off_view:
                 continue  # the floor's window leaves the reference view: no evidence
             tested[v, u] = True
-            best = 0
-            for k in range(1, n):
-                if cost[k] < cost[best]:
-                    best = k
             area = np.float32((y1_ - y0_) * (x1_ - x0_))
-            best_shift = abs(shifts[best])
-            # Floor: matches where the floor plane puts it, and well. Standing: matches
-            # better elsewhere on its epipolar line, or nowhere near (a parallax beyond
-            # the search).
-            on_floor[v, u] = best_shift <= planar_max and cost[best] <= match_max * area
-            standing[v, u] = best_shift >= standing_min or cost[0] >= mismatch_min * area
+            again[v - r0, u] = _verdict(
+                cost,
+                shifts,
+                area,
+                planar_max,
+                standing_min,
+                match_max,
+                mismatch_min,
+                on_floor,
+                standing,
+                v,
+                u,
+            )
+    if not soft_check:
+        return
+    # 4. What stands for matching nowhere is compared again with the current frame as
+    # soft as the reference: seen from farther away, the reference holds a strong edge
+    # (a threshold strip's) less sharply than the current frame does, and the two differ
+    # there by more than the mismatch a parallax leaves, wherever the edge is put. It
+    # stands only if it also stands then. A pixel that matched better displaced has
+    # shown its parallax and is left alone.
+    diff = np.empty((a1 - a0, w * n), np.float32)
+    _shifted_differences(
+        cur_soft,
+        flat_ref,
+        hr,
+        wr,
+        H_ref_from_cur,
+        epipole_u,
+        epipole_v,
+        _covered(again, r0, a0, a1, half),
+        a0,
+        shifts,
+        off_view,
+        diff,
+    )
+    for v in range(r0, r1):
+        y0_ = max(v - half, 0)
+        y1_ = min(v + half + 1, h)
+        for u in range(1, w - 1):
+            if not again[v - r0, u]:
+                continue
+            x0_ = max(u - half, 0)
+            x1_ = min(u + half + 1, w)
+            cost[:] = 0.0
+            for y in range(y0_, y1_):
+                for x in range(x0_, x1_):
+                    for k in range(n):
+                        cost[k] += diff[y - a0, x * n + k]
+            area = np.float32((y1_ - y0_) * (x1_ - x0_))
+            _verdict(
+                cost,
+                shifts,
+                area,
+                planar_max,
+                standing_min,
+                match_max,
+                mismatch_min,
+                on_floor,
+                standing,
+                v,
+                u,
+            )
+
+
+@numba.njit(cache=True, nogil=True)
+def _verdict(
+    cost: NDArray[np.float32],
+    shifts: NDArray[np.float64],
+    area: np.float32,
+    planar_max: float,
+    standing_min: float,
+    match_max: float,
+    mismatch_min: float,
+    on_floor: NDArray[np.bool_],
+    standing: NDArray[np.bool_],
+    v: int,
+    u: int,
+) -> bool:
+    """A pixel's verdict from its window's costs at ``shifts`` (the first of equal
+    costs wins, so a tie goes to the smaller parallax); True when it stands only for
+    matching nowhere near where the floor plane puts it (no better match found)."""
+    best = 0
+    for k in range(1, cost.shape[0]):
+        if cost[k] < cost[best]:
+            best = k
+    best_shift = abs(shifts[best])
+    # Floor: matches where the floor plane puts it, and well. Standing: matches better
+    # elsewhere on its epipolar line, or nowhere near (a parallax beyond the search).
+    on_floor[v, u] = best_shift <= planar_max and cost[best] <= match_max * area
+    standing[v, u] = best_shift >= standing_min or cost[0] >= mismatch_min * area
+    return bool(standing[v, u]) and best_shift < standing_min
 
 
 def row_ground_distance_m(

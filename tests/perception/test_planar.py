@@ -345,9 +345,68 @@ def test_parallax_evidence_tells_floor_from_the_box_at_full_resolution(
     assert (standing & view.face).sum() > 10 * (on_floor & view.face).sum()
 
 
+STRIP_M = (0.9, 1.02)
+"""A dark threshold strip across a plain floor (x metres from the robot's centre)."""
+
+
+def strip_view(pose: tuple[float, float, float], seed: int, supersample: int = 2) -> np.ndarray:
+    """The grey frame of a plain light floor crossed by a dark strip (`STRIP_M`): two
+    strong edges and nothing else, anti-aliased like `synthetic_view`."""
+    big = replace(
+        MODEL,
+        width_px=MODEL.width_px * supersample,
+        height_px=MODEL.height_px * supersample,
+        fx_px=MODEL.fx_px * supersample,
+        fy_px=MODEL.fy_px * supersample,
+    )
+    rays = big.rays_robot()
+    x, _, t = pose
+    rx = math.cos(t) * rays[..., 0] - math.sin(t) * rays[..., 1]
+    rz = rays[..., 2]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        t_floor = np.where(rz < 0, MODEL.height_m / -rz, np.inf)
+    fx = x + math.cos(t) * MODEL.x_m - math.sin(t) * MODEL.y_m + t_floor * rx
+    floor = np.isfinite(t_floor)
+    image = np.where(floor, 170.0, 200.0).astype(np.float32)
+    image[floor & (fx >= STRIP_M[0]) & (fx <= STRIP_M[1])] = 40.0
+    size = (MODEL.width_px, MODEL.height_px)
+    noise = np.random.default_rng(seed).normal(0.0, 2.0, (MODEL.height_px, MODEL.width_px))
+    return np.clip(cv2.resize(image, size, interpolation=cv2.INTER_AREA) + noise, 0, 255).astype(
+        np.uint8
+    )
+
+
+def test_a_threshold_seen_sharper_than_from_the_reference_does_not_stand() -> None:
+    # Approaching a flat dark strip: the reference, 0.12 m farther back, holds its edges
+    # less sharply. Compared as they are, most of the edges' pixels match at no shift and
+    # would stand; the second look, with the current frame as soft as the reference,
+    # finds them flat.
+    cur, ref = strip_view(CUR_POSE, seed=3), strip_view(REF_POSE, seed=4)
+    colour = np.zeros(cur.shape, bool)
+    colour[400:] = True
+
+    def test(soft_sigma_px: float) -> planar.ParallaxResult:
+        params = replace(planar.PlanarParams(), soft_sigma_px=soft_sigma_px)
+        return planar.confirm_floor(
+            colour, cur, ref, G, REF_POSE, CUR_POSE, CAMERA_XY, params, return_standing=True
+        )
+
+    unchecked, shipped = test(0.0), test(planar.PlanarParams().soft_sigma_px)
+    assert unchecked.tested.sum() > 5000, "the strip's two edges are tested"
+    assert unchecked.standing.sum() > 0.5 * unchecked.tested.sum()
+    assert np.array_equal(shipped.tested, unchecked.tested)
+    assert shipped.standing.sum() <= 0.01 * shipped.tested.sum()
+
+
 def test_the_search_holds_no_gil() -> None:
     """The mapping thread runs it while the others go on (app/jit.py compiles it)."""
-    for kernel in (planar._parallax_search, planar._extend_columns):
+    for kernel in (
+        planar._parallax_search,
+        planar._shifted_differences,
+        planar._covered,
+        planar._verdict,
+        planar._extend_columns,
+    ):
         assert kernel.targetoptions.get("nogil") is True
 
 
