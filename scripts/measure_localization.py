@@ -76,6 +76,23 @@ TOURS: dict[str, list[Leg]] = {
         (1.5, 4.0),
         "spin",
     ],
+    # Down the glossy corridor, into the open-plan office and the meeting room, and back.
+    "office": [
+        "spin",
+        (3.5, 3.5),
+        "spin",
+        (6.45, 3.5),
+        (6.45, 1.6),
+        "spin",
+        (6.45, 3.5),
+        (9.0, 3.6),
+        "spin",
+        (2.45, 3.5),
+        (2.45, 5.4),
+        "spin",
+        (2.45, 3.5),
+        (1.0, 3.5),
+    ],
 }
 
 
