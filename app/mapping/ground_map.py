@@ -458,46 +458,6 @@ class GivenUpGoals:
         return len(self.points)
 
 
-MIN_EXTENSION_M = 0.2
-"""Floor parallax adds past a colour edge over at least this much ground (in one image
-column) shows the edge to be none (`beyond_extension`): more than the centimetres it
-confirms at a wall's or a box's foot, less than a threshold strip and the tile after it."""
-
-
-def beyond_extension(
-    colour_floor: NDArray[np.bool_],
-    extended: NDArray[np.bool_],
-    row_distance_m: NDArray[np.float64],
-    min_extension_m: float = MIN_EXTENSION_M,
-) -> NDArray[np.bool_]:
-    """The not-floor pixels of ``extended`` above its topmost added pixel, in each image
-    column where it adds at least ``min_extension_m`` of ground (``row_distance_m``:
-    each row's, NaN above the horizon) to ``colour_floor``: there the colour method's
-    edge was shown to be no edge (parallax found the floor going on past it), and the
-    walk ended where its evidence did, not at anything seen standing, so what lies
-    beyond is not known to be not floor. What parallax or the horizon sees standing
-    there is marked apart, and so stays an obstacle.
-
-    >>> colour = np.array([[0, 0], [0, 0], [0, 0], [1, 1]], bool)
-    >>> extended = np.array([[0, 0], [0, 0], [1, 0], [1, 1]], bool)
-    >>> beyond_extension(colour, extended, np.array([3.0, 2.0, 1.0, 0.5])).astype(int).tolist()
-    [[1, 0], [1, 0], [0, 0], [0, 0]]
-    >>> beyond_extension(colour, extended, np.array([3.0, 2.0, 1.0, 0.9])).any()
-    np.False_
-    """
-    added = extended & ~colour_floor
-    height = extended.shape[0]
-    has = added.any(axis=0)
-    top = np.argmax(added, axis=0)
-    bottom = height - 1 - np.argmax(added[::-1], axis=0)
-    colour_end = np.minimum(bottom + 1, height - 1)  # the colour floor's top pixel below it
-    with np.errstate(invalid="ignore"):
-        long = has & (row_distance_m[top] - row_distance_m[colour_end] >= min_extension_m)
-    rows = np.arange(height)[:, None]
-    out: NDArray[np.bool_] = (rows < np.where(long, top, 0)[None, :]) & ~extended
-    return out
-
-
 class GroundMapper:
     """Owns the bird's-eye tables and the world grid; not thread-safe (one stage owns it).
 
@@ -622,15 +582,9 @@ class GroundMapper:
             if job is not None and geometry == "inline":
                 adopted = self._adopt(run_geometry_job(job))
                 job = None
-        past_extension: NDArray[np.bool_] | None = None
         if image is not None:
             if self.parallax is not None:
-                extended = self._with_confirmed(floor_mask, here, now_s)
-                if extended is not floor_mask:
-                    past_extension = beyond_extension(
-                        floor_mask, extended, self._row_distance_m(floor_mask.shape)
-                    )
-                floor_mask = extended
+                floor_mask = self._with_confirmed(floor_mask, here, now_s)
             cut_px = self._cut_behind_standing(floor_mask, here, now_s)
             if cut_px is not None:
                 floor_mask = floor_mask & ~cut_px
@@ -643,10 +597,9 @@ class GroundMapper:
             else:
                 standing_px = None
         patch = birdseye_floor_patch(floor_mask, self.birdseye)
-        for unsure_px in (unsure_mask, past_extension):
-            if unsure_px is not None:
-                unsure = birdseye_floor_patch(unsure_px, self.birdseye) == FLOOR
-                patch[unsure & (patch == NOT_FLOOR)] = UNSEEN
+        if unsure_mask is not None:
+            unsure = birdseye_floor_patch(unsure_mask, self.birdseye) == FLOOR
+            patch[unsure & (patch == NOT_FLOOR)] = UNSEEN
         # The thesis's safe-zone assumption: the strip just ahead of the robot, below the
         # camera's view, is free floor.
         patch[self.blind_zone] = FLOOR

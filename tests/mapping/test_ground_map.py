@@ -502,30 +502,3 @@ def test_the_map_says_how_much_of_the_safe_zone_it_knows_is_floor_and_none_with_
     assert again is not None and 0.0 < again < 0.5
     # Without the zone the mapper says nothing.
     assert mapper.update(floor_to(open_m), pose, 5 * WALLS_PERIOD_S, image).zone_known_floor is None
-
-
-def test_floor_parallax_found_past_a_threshold_ends_in_unknown_not_in_obstacles() -> None:
-    """Approaching the home's kitchen door: the colour floor ends at the threshold, and
-    parallax finds the tiles past it flat, from joint to joint, until its evidence runs
-    out. Where it runs out is no edge of anything: the tiles there stay unknown, not a
-    row of obstacles that closes the door to the frontier search."""
-    from app.mapping.frontiers import find_frontiers
-
-    mapper, renderer, segmenter = sim_mapper("home")
-    for k, x in enumerate(np.arange(4.0, 5.21, 0.02)):
-        pose = Pose2D(float(x), 6.1, 0.0)
-        frame = renderer.render(pose)  # type: ignore[attr-defined]
-        mask = segmenter.segment(frame.image).floor_mask  # type: ignore[attr-defined]
-        mapper.update(mask, pose, k / 15, frame.image)
-    classes = mapper.grid.remembered_classes()
-    x, y = mapper.grid.world_grid.cell_centers()
-    # The tiles 0.25-0.8 m past the threshold, clear of the door's jambs (y 5.6, 6.6)
-    # by more than the walls' bands: nothing stands there.
-    tiles = (x > 5.75) & (x < 6.3) & (y > 5.8) & (y < 6.4)
-    assert (classes[tiles] == FREE).sum() >= 0.8 * tiles.sum()
-    assert (classes[tiles] == OCCUPIED).sum() <= 2
-    kitchen = (x > 5.8) & (x < 7.0) & (y > 5.4) & (y < 6.8)
-    search = find_frontiers(classes, mapper.grid.world_grid, (5.2, 6.1), mapper.frontier_params)
-    assert (np.isfinite(search.distance_m) & kitchen).sum() >= 0.5 * (
-        classes[kitchen] == FREE
-    ).sum()
