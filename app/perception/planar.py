@@ -467,8 +467,8 @@ def _parallax_search(
     # soft as the reference: seen from farther away, the reference holds a strong edge
     # (a threshold strip's) less sharply than the current frame does, and the two differ
     # there by more than the mismatch a parallax leaves, wherever the edge is put. It
-    # stands only if it also stands then. A pixel that matched better displaced has
-    # shown its parallax and is left alone.
+    # stands only if it also stands then, and is floor if it matches as floor then. A
+    # pixel that matched better displaced has shown its parallax and is left alone.
     diff = np.empty((a1 - a0, w * n), np.float32)
     _shifted_differences(
         cur_soft,
