@@ -203,29 +203,60 @@ class SyntheticView:
     """The pixels of the plain floor patch."""
 
 
+@dataclass(frozen=True)
+class CameraRays:
+    """The camera's rays in the world at ``supersample`` times the resolution: its
+    centre (ex, ey, ez), each pixel's direction (rx, ry, rz) and the range at which the
+    ray meets the floor (``t_floor``, inf above the horizon)."""
+
+    ex: float
+    ey: float
+    ez: float
+    rx: np.ndarray
+    ry: np.ndarray
+    rz: np.ndarray
+    t_floor: np.ndarray
+
+    @classmethod
+    def at(cls, pose: tuple[float, float, float], supersample: int) -> CameraRays:
+        big = replace(
+            MODEL,
+            width_px=MODEL.width_px * supersample,
+            height_px=MODEL.height_px * supersample,
+            fx_px=MODEL.fx_px * supersample,
+            fy_px=MODEL.fy_px * supersample,
+        )
+        rays = big.rays_robot()
+        x, y, t = pose
+        c, s = math.cos(t), math.sin(t)
+        rz = rays[..., 2]
+        with np.errstate(divide="ignore", invalid="ignore"):
+            t_floor = np.where(rz < 0, MODEL.height_m / -rz, np.inf)
+        return cls(
+            x + c * MODEL.x_m - s * MODEL.y_m,
+            y + s * MODEL.x_m + c * MODEL.y_m,
+            MODEL.height_m,
+            c * rays[..., 0] - s * rays[..., 1],
+            s * rays[..., 0] + c * rays[..., 1],
+            rz,
+            t_floor,
+        )
+
+    def averaged_down(self, image: np.ndarray, seed: int) -> np.ndarray:
+        """``image`` (at this resolution) averaged down to the camera's (against
+        aliasing), with sensor noise (grey levels, sd 2), as uint8."""
+        size = (MODEL.width_px, MODEL.height_px)
+        noise = np.random.default_rng(seed).normal(0.0, 2.0, (MODEL.height_px, MODEL.width_px))
+        small = cv2.resize(image.astype(np.float32), size, interpolation=cv2.INTER_AREA)
+        return np.clip(small + noise, 0, 255).astype(np.uint8)
+
+
 def synthetic_view(pose: tuple[float, float, float], supersample: int = 2) -> SyntheticView:
     """The camera's grey frame at the robot ``pose``, ray-cast at ``supersample`` times
     the resolution and averaged down (against aliasing), with sensor noise."""
-    big = replace(
-        MODEL,
-        width_px=MODEL.width_px * supersample,
-        height_px=MODEL.height_px * supersample,
-        fx_px=MODEL.fx_px * supersample,
-        fy_px=MODEL.fy_px * supersample,
-    )
-    rays = big.rays_robot()
-    x, y, t = pose
-    c, s = math.cos(t), math.sin(t)
-    rx = c * rays[..., 0] - s * rays[..., 1]
-    ry = s * rays[..., 0] + c * rays[..., 1]
-    rz = rays[..., 2]
-    ex, ey, ez = (
-        x + c * MODEL.x_m - s * MODEL.y_m,
-        y + s * MODEL.x_m + c * MODEL.y_m,
-        MODEL.height_m,
-    )
+    cam = CameraRays.at(pose, supersample)
+    ex, ey, ez, rx, ry, rz, t_floor = (cam.ex, cam.ey, cam.ez, cam.rx, cam.ry, cam.rz, cam.t_floor)
     with np.errstate(divide="ignore", invalid="ignore"):
-        t_floor = np.where(rz < 0, ez / -rz, np.inf)
         t_face = np.where(rx > 0, (BOX[0] - ex) / rx, np.inf)
     floor = np.isfinite(t_floor)
     fx, fy = ex + t_floor * rx, ey + t_floor * ry
@@ -242,10 +273,10 @@ def synthetic_view(pose: tuple[float, float, float], supersample: int = 2) -> Sy
     def down(values: np.ndarray) -> np.ndarray:
         return np.asarray(cv2.resize(values, size, interpolation=cv2.INTER_AREA), np.float32)
 
-    noise = np.random.default_rng(3).normal(0.0, 2.0, (MODEL.height_px, MODEL.width_px))
-    gray = np.clip(down(image) + noise, 0, 255).astype(np.uint8)
     return SyntheticView(
-        gray, down(face.astype(np.float32)) > 0.5, down(plain.astype(np.float32)) > 0.5
+        cam.averaged_down(image, seed=3),
+        down(face.astype(np.float32)) > 0.5,
+        down(plain.astype(np.float32)) > 0.5,
     )
 
 
@@ -352,28 +383,12 @@ STRIP_M = (0.9, 1.02)
 def strip_view(pose: tuple[float, float, float], seed: int, supersample: int = 2) -> np.ndarray:
     """The grey frame of a plain light floor crossed by a dark strip (`STRIP_M`): two
     strong edges and nothing else, anti-aliased like `synthetic_view`."""
-    big = replace(
-        MODEL,
-        width_px=MODEL.width_px * supersample,
-        height_px=MODEL.height_px * supersample,
-        fx_px=MODEL.fx_px * supersample,
-        fy_px=MODEL.fy_px * supersample,
-    )
-    rays = big.rays_robot()
-    x, _, t = pose
-    rx = math.cos(t) * rays[..., 0] - math.sin(t) * rays[..., 1]
-    rz = rays[..., 2]
-    with np.errstate(divide="ignore", invalid="ignore"):
-        t_floor = np.where(rz < 0, MODEL.height_m / -rz, np.inf)
-    fx = x + math.cos(t) * MODEL.x_m - math.sin(t) * MODEL.y_m + t_floor * rx
-    floor = np.isfinite(t_floor)
-    image = np.where(floor, 170.0, 200.0).astype(np.float32)
+    cam = CameraRays.at(pose, supersample)
+    fx = cam.ex + cam.t_floor * cam.rx
+    floor = np.isfinite(cam.t_floor)
+    image = np.where(floor, 170.0, 200.0)
     image[floor & (fx >= STRIP_M[0]) & (fx <= STRIP_M[1])] = 40.0
-    size = (MODEL.width_px, MODEL.height_px)
-    noise = np.random.default_rng(seed).normal(0.0, 2.0, (MODEL.height_px, MODEL.width_px))
-    return np.clip(cv2.resize(image, size, interpolation=cv2.INTER_AREA) + noise, 0, 255).astype(
-        np.uint8
-    )
+    return cam.averaged_down(image, seed)
 
 
 def test_a_threshold_seen_sharper_than_from_the_reference_does_not_stand() -> None:
