@@ -418,18 +418,100 @@ def _parallax_search(
         off_view,
         diff,
     )
-    # 3. Each textured pixel's window costs (mean absolute difference) and verdict, from
-    # the window's column sums, each computed once per row.
+    # 3. Each textured pixel's window costs and verdict.
+    again = _judge(
+        textured,
+        diff,
+        r0,
+        a0,
+        shifts,
+        window,
+        off_view,
+        planar_max,
+        standing_min,
+        match_max,
+        mismatch_min,
+        on_floor,
+        standing,
+        tested,
+    )
+    if not soft_check:
+        return
+    # 4. What stands for matching nowhere is compared again with the current frame as
+    # soft as the reference: seen from farther away, the reference holds a strong edge
+    # (a threshold strip's) less sharply than the current frame does, and the two differ
+    # there by more than the mismatch a parallax leaves, wherever the edge is put. It
+    # stands only if it also stands then, and is floor if it matches as floor then. A
+    # pixel that matched better displaced has shown its parallax and is left alone.
+    _shifted_differences(
+        cur_soft,
+        flat_ref,
+        hr,
+        wr,
+        H_ref_from_cur,
+        epipole_u,
+        epipole_v,
+        _covered(again, r0, a0, a1, half),
+        a0,
+        shifts,
+        off_view,
+        diff,
+    )
+    _judge(
+        again,
+        diff,
+        r0,
+        a0,
+        shifts,
+        window,
+        off_view,
+        planar_max,
+        standing_min,
+        match_max,
+        mismatch_min,
+        on_floor,
+        standing,
+        tested,
+    )
+
+
+@numba.njit(cache=True, nogil=True)
+def _judge(
+    marked: NDArray[np.bool_],
+    diff: NDArray[np.float32],
+    r0: int,
+    a0: int,
+    shifts: NDArray[np.float64],
+    window: int,
+    off_view: np.float32,
+    planar_max: float,
+    standing_min: float,
+    match_max: float,
+    mismatch_min: float,
+    on_floor: NDArray[np.bool_],
+    standing: NDArray[np.bool_],
+    tested: NDArray[np.bool_],
+) -> NDArray[np.bool_]:
+    """The verdict of each pixel ``marked`` (rows r0 on) from its window's costs (mean
+    absolute difference) at ``shifts`` in ``diff`` (`_shifted_differences`, rows a0
+    on), summed from the window's column sums, each computed once per row; the first
+    of equal costs wins, so a tie goes to the smaller parallax. A window that leaves the
+    reference view gives no evidence. Returns the pixels that stand only for matching
+    nowhere near where the floor plane puts them (no better match found)."""
+    h, w = on_floor.shape
+    n = shifts.shape[0]
+    half = window // 2
+    rows = marked.shape[0]
     column_sums = np.empty(w * n, np.float32)
     summed = np.empty(w, np.int64)  # the row whose sums column_sums holds, per column
     summed[:] = -1
     cost = np.empty(n, np.float32)
-    again = np.zeros((r1 - r0, w), np.bool_)  # standing for matching nowhere
-    for v in range(r0, r1):
+    unmatched = np.zeros((rows, w), np.bool_)
+    for v in range(r0, r0 + rows):
         y0_ = max(v - half, 0)
         y1_ = min(v + half + 1, h)
         for u in range(1, w - 1):
-            if not textured[v - r0, u]:
+            if not marked[v - r0, u]:
                 continue
             x0_ = max(u - half, 0)
             x1_ = min(u + half + 1, w)
@@ -445,101 +527,21 @@ def _parallax_search(
                 for k in range(n):
                     cost[k] += column_sums[j + k]
             if cost[0] >= off_view:
-                continue  # the floor's window leaves the reference view: no evidence
-            tested[v, u] = True
-            area = np.float32((y1_ - y0_) * (x1_ - x0_))
-            again[v - r0, u] = _verdict(
-                cost,
-                shifts,
-                area,
-                planar_max,
-                standing_min,
-                match_max,
-                mismatch_min,
-                on_floor,
-                standing,
-                v,
-                u,
-            )
-    if not soft_check:
-        return
-    # 4. What stands for matching nowhere is compared again with the current frame as
-    # soft as the reference: seen from farther away, the reference holds a strong edge
-    # (a threshold strip's) less sharply than the current frame does, and the two differ
-    # there by more than the mismatch a parallax leaves, wherever the edge is put. It
-    # stands only if it also stands then, and is floor if it matches as floor then. A
-    # pixel that matched better displaced has shown its parallax and is left alone.
-    diff = np.empty((a1 - a0, w * n), np.float32)
-    _shifted_differences(
-        cur_soft,
-        flat_ref,
-        hr,
-        wr,
-        H_ref_from_cur,
-        epipole_u,
-        epipole_v,
-        _covered(again, r0, a0, a1, half),
-        a0,
-        shifts,
-        off_view,
-        diff,
-    )
-    for v in range(r0, r1):
-        y0_ = max(v - half, 0)
-        y1_ = min(v + half + 1, h)
-        for u in range(1, w - 1):
-            if not again[v - r0, u]:
                 continue
-            x0_ = max(u - half, 0)
-            x1_ = min(u + half + 1, w)
-            cost[:] = 0.0
-            for y in range(y0_, y1_):
-                for x in range(x0_, x1_):
-                    for k in range(n):
-                        cost[k] += diff[y - a0, x * n + k]
+            tested[v, u] = True
+            best = 0
+            for k in range(1, n):
+                if cost[k] < cost[best]:
+                    best = k
             area = np.float32((y1_ - y0_) * (x1_ - x0_))
-            _verdict(
-                cost,
-                shifts,
-                area,
-                planar_max,
-                standing_min,
-                match_max,
-                mismatch_min,
-                on_floor,
-                standing,
-                v,
-                u,
-            )
-
-
-@numba.njit(cache=True, nogil=True)
-def _verdict(
-    cost: NDArray[np.float32],
-    shifts: NDArray[np.float64],
-    area: np.float32,
-    planar_max: float,
-    standing_min: float,
-    match_max: float,
-    mismatch_min: float,
-    on_floor: NDArray[np.bool_],
-    standing: NDArray[np.bool_],
-    v: int,
-    u: int,
-) -> bool:
-    """A pixel's verdict from its window's costs at ``shifts`` (the first of equal
-    costs wins, so a tie goes to the smaller parallax); True when it stands only for
-    matching nowhere near where the floor plane puts it (no better match found)."""
-    best = 0
-    for k in range(1, cost.shape[0]):
-        if cost[k] < cost[best]:
-            best = k
-    best_shift = abs(shifts[best])
-    # Floor: matches where the floor plane puts it, and well. Standing: matches better
-    # elsewhere on its epipolar line, or nowhere near (a parallax beyond the search).
-    on_floor[v, u] = best_shift <= planar_max and cost[best] <= match_max * area
-    standing[v, u] = best_shift >= standing_min or cost[0] >= mismatch_min * area
-    return bool(standing[v, u]) and best_shift < standing_min
+            best_shift = abs(shifts[best])
+            # Floor: matches where the floor plane puts it, and well. Standing: matches
+            # better elsewhere on its epipolar line, or nowhere near (a parallax beyond
+            # the search).
+            on_floor[v, u] = best_shift <= planar_max and cost[best] <= match_max * area
+            standing[v, u] = best_shift >= standing_min or cost[0] >= mismatch_min * area
+            unmatched[v - r0, u] = standing[v, u] and best_shift < standing_min
+    return unmatched
 
 
 def row_ground_distance_m(

@@ -419,7 +419,7 @@ def test_the_search_holds_no_gil() -> None:
         planar._parallax_search,
         planar._shifted_differences,
         planar._covered,
-        planar._verdict,
+        planar._judge,
         planar._extend_columns,
     ):
         assert kernel.targetoptions.get("nogil") is True
