@@ -401,78 +401,49 @@ def _parallax_search(
             if along * along < limit * norm2 or norm2 < 1e-6:
                 continue
             textured[v - r0, u] = True
-    # 2. |cur - ref| at every shift along the epipolar line where a textured pixel's
-    # window needs it (only those entries are ever read).
+    # 2. |cur - ref| at every shift along the epipolar line where a judged pixel's
+    # window needs it (only those entries are ever read), then 3. each such pixel's
+    # window costs and verdict: first every textured pixel; then, with ``soft_check``,
+    # what stood for matching nowhere, compared again with the current frame as soft as
+    # the reference. Seen from farther away, the reference holds a strong edge (a
+    # threshold strip's) less sharply than the current frame does, and the two differ
+    # there by more than the mismatch a parallax leaves, wherever the edge is put: such
+    # a pixel stands only if it also stands then, and is floor if it matches as floor
+    # then. A pixel that matched better displaced has shown its parallax and is left
+    # alone.
     diff = np.empty((a1 - a0, w * n), np.float32)
-    _shifted_differences(
-        cur,
-        flat_ref,
-        hr,
-        wr,
-        H_ref_from_cur,
-        epipole_u,
-        epipole_v,
-        _covered(textured, r0, a0, a1, half),
-        a0,
-        shifts,
-        off_view,
-        diff,
-    )
-    # 3. Each textured pixel's window costs and verdict.
-    again = _judge(
-        textured,
-        diff,
-        r0,
-        a0,
-        shifts,
-        window,
-        off_view,
-        planar_max,
-        standing_min,
-        match_max,
-        mismatch_min,
-        on_floor,
-        standing,
-        tested,
-    )
-    if not soft_check:
-        return
-    # 4. What stands for matching nowhere is compared again with the current frame as
-    # soft as the reference: seen from farther away, the reference holds a strong edge
-    # (a threshold strip's) less sharply than the current frame does, and the two differ
-    # there by more than the mismatch a parallax leaves, wherever the edge is put. It
-    # stands only if it also stands then, and is floor if it matches as floor then. A
-    # pixel that matched better displaced has shown its parallax and is left alone.
-    _shifted_differences(
-        cur_soft,
-        flat_ref,
-        hr,
-        wr,
-        H_ref_from_cur,
-        epipole_u,
-        epipole_v,
-        _covered(again, r0, a0, a1, half),
-        a0,
-        shifts,
-        off_view,
-        diff,
-    )
-    _judge(
-        again,
-        diff,
-        r0,
-        a0,
-        shifts,
-        window,
-        off_view,
-        planar_max,
-        standing_min,
-        match_max,
-        mismatch_min,
-        on_floor,
-        standing,
-        tested,
-    )
+    judged = textured
+    for look in range(2 if soft_check else 1):
+        _shifted_differences(
+            cur if look == 0 else cur_soft,
+            flat_ref,
+            hr,
+            wr,
+            H_ref_from_cur,
+            epipole_u,
+            epipole_v,
+            _covered(judged, r0, a0, a1, half),
+            a0,
+            shifts,
+            off_view,
+            diff,
+        )
+        judged = _judge(
+            judged,
+            diff,
+            r0,
+            a0,
+            shifts,
+            window,
+            off_view,
+            planar_max,
+            standing_min,
+            match_max,
+            mismatch_min,
+            on_floor,
+            standing,
+            tested,
+        )
 
 
 @numba.njit(cache=True, nogil=True)
