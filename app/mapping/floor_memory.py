@@ -172,9 +172,15 @@ class FloorMemory:
         self.standing = np.zeros(world_grid.shape, dtype=np.uint8)
         """1 where geometry saw something standing, in at least
         `FloorMemoryParams.standing_min_marks` more tests than saw floor there (not kept
-        in map files): the frontier search does not probe those edges again."""
+        in map files): not known floor, and where its feet were seen there
+        (`standing_seen`), an edge the frontier search does not probe."""
         self.standing_marks = np.zeros(world_grid.shape, dtype=np.uint8)
         """Tests that marked the cell standing, less those that saw floor there."""
+        self.seen_foot_marks = np.zeros(world_grid.shape, dtype=np.uint8)
+        """Of `standing_marks`, those whose foot was seen where the thing stands (the
+        standing pixels' own lowest one), not placed where a frame's floor ended below a
+        gap of not-floor (a plain wall's lower part, or another floor): counted and
+        lost as those are (`mark_standing`'s ``seen_cells``)."""
         self._colour = np.zeros((n, 3), dtype=np.float32)
         self._sightings = np.zeros(n, dtype=np.uint16)
         self._appearance_lab = np.zeros((0, 3), dtype=np.float32)
@@ -231,6 +237,7 @@ class FloorMemory:
         flat[new] = 1
         self.standing.reshape(-1)[cells] = 0
         self.standing_marks.reshape(-1)[cells] = 0
+        self.seen_foot_marks.reshape(-1)[cells] = 0
         seen = new[self._sightings[new] > 0]
         if seen.size:
             self._learn(bgr_to_scaled_lab(self._colour[seen]))
@@ -255,7 +262,10 @@ class FloorMemory:
         return self.confirm_cells(rows[rr] * grid.cols + cols[cc])
 
     def mark_standing(
-        self, cells: NDArray[np.int64], standing_bgr: NDArray[np.generic] | None = None
+        self,
+        cells: NDArray[np.int64],
+        standing_bgr: NDArray[np.generic] | None = None,
+        seen_cells: NDArray[np.int64] | None = None,
     ) -> None:
         """Geometry saw something standing on these cells: they are no longer known
         floor, and an appearance of its colour is unlearned (a floor-coloured box).
@@ -263,10 +273,15 @@ class FloorMemory:
         ``standing_bgr`` : (N, 3) colours of the image pixels seen standing. Without
         them the cells' own colour layer stands in; with them the standing thing's
         own colours decide (the cells a standing pixel projects to through the floor
-        homography lie behind it, and their colour is the floor's there)."""
+        homography lie behind it, and their colour is the floor's there).
+        ``seen_cells`` : those of ``cells`` whose foot was seen where the thing stands
+        (None: all of them; `seen_feet`)."""
         cells = np.unique(cells[cells >= 0])
         if cells.size == 0:
             return
+        seen = cells if seen_cells is None else np.intersect1d(cells, seen_cells)
+        seen_marks = self.seen_foot_marks.reshape(-1)
+        seen_marks[seen] = np.minimum(seen_marks[seen] + 1, self.params.standing_max_marks)
         self.confirmed.reshape(-1)[cells] = 0
         marks = self.standing_marks.reshape(-1)
         marks[cells] = np.minimum(marks[cells] + 1, self.params.standing_max_marks)
@@ -299,6 +314,9 @@ class FloorMemory:
         cells = np.unique(cells[cells >= 0])
         if cells.size == 0:
             return
+        seen_marks = self.seen_foot_marks.reshape(-1)
+        seen = cells[seen_marks[cells] > 0]
+        seen_marks[seen] -= 1
         marks = self.standing_marks.reshape(-1)
         marked = cells[marks[cells] > 0]
         if marked.size == 0:
@@ -306,6 +324,16 @@ class FloorMemory:
         marks[marked] -= 1
         gone = marked[marks[marked] < self.params.standing_min_marks]
         self.standing.reshape(-1)[gone] = 0
+
+    def standing_seen(self) -> NDArray[np.bool_]:
+        """The `standing` cells whose foot was seen there in at least
+        `FloorMemoryParams.standing_min_marks` tests (net of those that saw floor): a
+        real edge. The rest were placed where a frame's floor ended, and an edge probe
+        may look closer."""
+        return np.asarray(
+            (self.standing != 0) & (self.seen_foot_marks >= self.params.standing_min_marks),
+            dtype=np.bool_,
+        )
 
     def known_share(self, cells: NDArray[np.int64]) -> float:
         """Of these flat world-cell indices (-1: off the map, counted as not known), the
@@ -389,6 +417,7 @@ class FloorMemory:
         self.confirmed[...] = state.confirmed != 0
         self.standing.fill(0)
         self.standing_marks.fill(0)
+        self.seen_foot_marks.fill(0)
         self._appearance_lab = table[:, :3].copy()
         self._appearance_cells = table[:, 3].astype(np.float64)
         self._colour.fill(0.0)
@@ -398,6 +427,7 @@ class FloorMemory:
         self.confirmed.fill(0)
         self.standing.fill(0)
         self.standing_marks.fill(0)
+        self.seen_foot_marks.fill(0)
         self._colour.fill(0.0)
         self._sightings.fill(0)
         self._appearance_lab = np.zeros((0, 3), dtype=np.float32)

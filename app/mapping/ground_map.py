@@ -208,6 +208,13 @@ class _FeetGeometry:
             return standing_feet(standing, floor, self.row_distance_m)
         return upright_standing_feet(standing, floor, self.upright)
 
+    def seen_feet(self, standing: NDArray[np.bool_], feet: NDArray[np.bool_]) -> NDArray[np.bool_]:
+        """Of ``feet`` (`feet` of ``standing``), those at a standing run's own lowest
+        pixels: seen where the thing stands. The others were placed where the floor below
+        ended, across not-floor the tests could not judge: a plain wall's lower part, or
+        a floor of another colour under a chair seen beyond it."""
+        return feet & self.feet(standing, ~standing)
+
 
 @dataclass(frozen=True)
 class _ParallaxInput:
@@ -258,6 +265,8 @@ class GeometryOutcome:
     """What parallax saw standing and the walls test proved standing (None: nothing)."""
     feet: NDArray[np.bool_] | None
     """Where what stands meets the floor."""
+    seen_feet: NDArray[np.bool_] | None
+    """The feet seen where the thing stands (`_FeetGeometry.seen_feet`)."""
     standing_bgr: NDArray[np.uint8] | None
     """Every `STANDING_COLOUR_STRIDE`-th colour of the standing pixels (unlearning)."""
     wall_floor: NDArray[np.bool_] | None
@@ -340,10 +349,12 @@ def run_geometry_job(job: GeometryJob) -> GeometryOutcome:
                 standing_parts.append(wall_floor)
                 floor = floor & ~wall_floor
                 floor_for_feet = floor_for_feet & ~wall_floor
-    standing = feet = standing_bgr = None
+    standing = feet = seen_feet = standing_bgr = None
     if standing_parts:
         standing = np.logical_or.reduce(standing_parts)
-        feet = job.feet.feet(standing if across is None else standing | across, floor_for_feet)
+        stands = standing if across is None else standing | across
+        feet = job.feet.feet(stands, floor_for_feet)
+        seen_feet = job.feet.seen_feet(stands, feet)
         if job.image.ndim == 3:
             standing_bgr = job.image[standing][::STANDING_COLOUR_STRIDE]
     return GeometryOutcome(
@@ -353,6 +364,7 @@ def run_geometry_job(job: GeometryJob) -> GeometryOutcome:
         cut=cut,
         standing=standing,
         feet=feet,
+        seen_feet=seen_feet,
         standing_bgr=standing_bgr,
         wall_floor=wall_floor,
         unaligned=unaligned,
@@ -370,8 +382,10 @@ class _Adopted:
 STANDING_COLOUR_STRIDE = 4
 """Every this many standing pixels' colours vote on unlearning (thousands per test)."""
 PROBE_STANDING_REACH_M = 0.3
-"""An occupied cell this close to one geometry saw standing is a real edge: not probed
-(what stands is marked at its foot, where the floor ends: `standing_feet`)."""
+"""An occupied cell this close to one geometry saw standing, its foot seen there, is a
+real edge: not probed (`FloorMemory.standing_seen`). A foot placed where a frame's floor
+ended, below not-floor the tests could not judge (a threshold, the tiles past it), does
+not stop a probe: the look from close up tells a wall's lower part from another floor."""
 PROBE_GIVEN_UP_RADIUS_M = 0.8
 """Edges within this of a given-up goal are not probed again (`GroundMapper.frontiers`):
 the probe stood within the inflation radius plus two cells of its edge, and an edge
@@ -655,7 +669,16 @@ class GroundMapper:
             feet = None
             if outcome.feet is not None:
                 feet = birdseye_floor_patch(outcome.feet, self.birdseye) == FLOOR
-                memory.mark_standing(index_then[feet], outcome.standing_bgr)
+                seen = (
+                    None
+                    if outcome.seen_feet is None
+                    else birdseye_floor_patch(outcome.seen_feet, self.birdseye) == FLOOR
+                )
+                memory.mark_standing(
+                    index_then[feet],
+                    outcome.standing_bgr,
+                    None if seen is None else index_then[seen],
+                )
             if outcome.job.walls:
                 # The walls test looked along every column: near floor it saw, a cell
                 # clear of its own feet, holds no foot (a threshold marked while the
@@ -676,9 +699,18 @@ class GroundMapper:
         if standing_px is not None and image is not None:
             standing = birdseye_floor_patch(standing_px, self.birdseye) == FLOOR
             # Only its foot stands where the homography puts it (see `run_geometry_job`).
-            feet_image = self._feet_geometry(standing_px.shape).feet(standing_px, floor_mask)
+            feet_geometry = self._feet_geometry(standing_px.shape)
+            feet_image = feet_geometry.feet(standing_px, floor_mask)
             feet = birdseye_floor_patch(feet_image, self.birdseye) == FLOOR
-            memory.mark_standing(index[feet], image[standing_px][::STANDING_COLOUR_STRIDE])
+            seen = (
+                birdseye_floor_patch(
+                    feet_geometry.seen_feet(standing_px, feet_image), self.birdseye
+                )
+                == FLOOR
+            )
+            memory.mark_standing(
+                index[feet], image[standing_px][::STANDING_COLOUR_STRIDE], index[seen]
+            )
             patch[standing] = NOT_FLOOR
             standing_cells = standing if standing_cells is None else standing_cells | standing
         memory.drive_over(T_world_robot, self.mapping.robot_radius_m)
@@ -1040,10 +1072,10 @@ class GroundMapper:
 
     def frontier_probe_cells(self) -> NDArray[np.bool_]:
         """World cells whose occupied edges the frontier search may probe: not within
-        `PROBE_STANDING_REACH_M` of anything seen standing, nor near a probe given up
-        (its edge is not looked at again)."""
+        `PROBE_STANDING_REACH_M` of anything seen standing where its foot was seen, nor
+        near a probe given up (its edge is not looked at again)."""
         standing = inflate_obstacles(
-            self.memory.standing != 0, PROBE_STANDING_REACH_M / self.grid.world_grid.cell_m
+            self.memory.standing_seen(), PROBE_STANDING_REACH_M / self.grid.world_grid.cell_m
         )
         return np.asarray(~(standing | self.given_up.no_probe), dtype=np.bool_)
 

@@ -216,6 +216,13 @@ def report(rt: Runtime) -> dict[str, Any]:
                 2,
             ),
             "standing_near_truth": standing_near,
+            # Of it, what stands where its foot was seen (only that keeps an edge from
+            # probes: `FloorMemory.standing_seen`).
+            "standing_seen_m2": round(
+                float(np.count_nonzero(mapper.memory.standing_seen()))
+                * mapper.grid.world_grid.cell_m**2,
+                2,
+            ),
             "probe_edge_share": mapper.probe_edge_share(),
             "parallax_tests": mapper.parallax_frames,
             "parallax_unaligned": mapper.parallax_unaligned,

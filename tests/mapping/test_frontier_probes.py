@@ -133,3 +133,36 @@ def test_floor_memory_remembers_what_stood_until_it_is_floor_again() -> None:
     memory.mark_standing(cells)
     memory.reset()
     assert not memory.standing.any() and not memory.standing_marks.any()
+
+
+def test_only_feet_seen_where_they_stand_keep_their_edge_from_probes() -> None:
+    """A foot placed where a frame's floor ended (below a gap the tests could not
+    judge: a threshold, tiles past it) stands, but only feet seen at the standing
+    thing's own base make a real edge (`FloorMemory.standing_seen`)."""
+    memory = FloorMemory(GRID)  # 2 net marks to stand; marks saturate at 3
+    seen_cells = np.array([5, 6], dtype=np.int64)
+    placed = np.array([7, 8], dtype=np.int64)
+    cells = np.concatenate((seen_cells, placed))
+
+    def layers() -> tuple[list[int], list[bool]]:
+        standing = memory.standing.reshape(-1)[cells]
+        seen = memory.standing_seen().reshape(-1)[cells]
+        return [int(v) for v in standing], [bool(v) for v in seen]
+
+    memory.mark_standing(cells, seen_cells=seen_cells)
+    assert layers() == ([0, 0, 0, 0], [False] * 4)
+    # A seen cell that is no foot of this test is not counted.
+    memory.mark_standing(cells, seen_cells=np.array([5, 6, 40], dtype=np.int64))
+    assert layers() == ([1, 1, 1, 1], [True, True, False, False])
+    assert memory.seen_foot_marks.reshape(-1)[40] == 0
+    # Floor seen takes a seen mark with the mark; confirmed floor takes them all.
+    memory.see_floor(np.array([5], dtype=np.int64))
+    assert layers() == ([0, 1, 1, 1], [False, True, False, False])
+    memory.confirm_cells(np.array([6], dtype=np.int64))
+    assert layers() == ([0, 0, 1, 1], [False] * 4)
+    # Without ``seen_cells`` every foot was seen where it stands.
+    memory.mark_standing(np.array([7], dtype=np.int64))
+    memory.mark_standing(np.array([7], dtype=np.int64))
+    assert layers() == ([0, 0, 1, 1], [False, False, True, False])
+    memory.reset()
+    assert not memory.seen_foot_marks.any()

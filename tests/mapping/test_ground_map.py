@@ -15,7 +15,7 @@ from numpy.typing import NDArray
 from app.config import CameraConfig, MappingConfig
 from app.mapping.calibration import apply_homography, homography_from_point_pairs
 from app.mapping.frames import FLOOR, NOT_FLOOR, Pose2D
-from app.mapping.ground_map import WALLS_PERIOD_S, GroundMapper
+from app.mapping.ground_map import WALLS_PERIOD_S, GroundMapper, _FeetGeometry
 from app.mapping.occupancy import FREE, OCCUPIED, UNKNOWN, OccupancyGrid
 
 from .test_calibration import HEIGHT, WIDTH, camera_homography
@@ -502,3 +502,22 @@ def test_the_map_says_how_much_of_the_safe_zone_it_knows_is_floor_and_none_with_
     assert again is not None and 0.0 < again < 0.5
     # Without the zone the mapper says nothing.
     assert mapper.update(floor_to(open_m), pose, 5 * WALLS_PERIOD_S, image).zone_known_floor is None
+
+
+def test_feet_seen_standing_are_those_at_the_standing_things_own_base() -> None:
+    """`_FeetGeometry.seen_feet`: a leg standing right on the floor has its foot seen;
+    one beyond a not-floor gap (a threshold, tiles) has its foot placed where the floor
+    ended, and that foot is not seen."""
+    rows_m = np.array([np.nan, 3.0, 2.0, 1.2, 1.15, 1.1])
+    feet_geometry = _FeetGeometry(None, rows_m)
+    standing = np.zeros((6, 2), bool)
+    standing[1:3, :] = True
+    floor = np.zeros((6, 2), bool)
+    floor[3:, 0] = True  # column 0: the floor reaches the leg
+    floor[4:, 1] = True  # column 1: row 3 is a gap of not-floor below it
+    feet = feet_geometry.feet(standing, floor)
+    assert np.flatnonzero(feet[:, 0]).tolist() == [2]
+    assert np.flatnonzero(feet[:, 1]).tolist() == [3]
+    seen = feet_geometry.seen_feet(standing, feet)
+    assert np.flatnonzero(seen[:, 0]).tolist() == [2]
+    assert not seen[:, 1].any()

@@ -73,6 +73,11 @@ async def test_twenty_seconds_in_each_harder_world(world: str) -> None:
         assert memory["standing_m2"] == round(
             float((mapper.memory.standing != 0).sum()) * mapper.grid.world_grid.cell_m**2, 2
         )
+        seen = mapper.memory.standing_seen()
+        assert memory["standing_seen_m2"] == round(
+            float(seen.sum()) * mapper.grid.world_grid.cell_m**2, 2
+        )
+        assert not (seen & (mapper.memory.standing == 0)).any()
     print(
         f"\n20 s in {world}: reachable coverage {report['coverage_reachable']}, map IoU"
         f" {report['map_iou']}, {report['distance_m']} m, pose error {report['pose_error_m']},"
