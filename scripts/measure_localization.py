@@ -22,6 +22,7 @@ import math
 import statistics
 import sys
 import time
+from collections.abc import Callable
 from dataclasses import dataclass
 from pathlib import Path
 
@@ -125,10 +126,18 @@ class Tour:
     wall_s: float
 
 
-def drive_tour(config: FloornavConfig, legs: list[Leg], seed: int, max_s: float = 240.0) -> Tour:
+def drive_tour(
+    config: FloornavConfig,
+    legs: list[Leg],
+    seed: int,
+    max_s: float = 240.0,
+    prepare: Callable[[GroundMapper, SimRobot, Pose2D], None] | None = None,
+) -> Tour:
     """Drive ``legs`` in ``config``'s world and map every frame as the daemon does (the
     learned floor handed to the segmenter twice a second, floor odometry after each
-    frame's map); stops at the end, after ``max_s`` or at a collision."""
+    frame's map); stops at the end, after ``max_s`` or at a collision. ``prepare`` is
+    handed the mapper, the simulated robot and the start pose before the first frame
+    (an evaluation's hook: `scripts/eval_scan_match.py` swaps in its own localizer)."""
     renderer = renderer_from_config(config)
     robot = SimRobot(renderer.world, robot_params(config), seed=seed)
     start = renderer.world.start_pose
@@ -144,6 +153,8 @@ def drive_tour(config: FloornavConfig, legs: list[Leg], seed: int, max_s: float 
     last_appearances = -1.0
     cruise = config.steering.cruise_speed_m_s
     turn = config.steering.turn_speed_rad_s
+    if prepare is not None:
+        prepare(mapper, robot, start)
     started = time.perf_counter()
     while legs and t < max_s and robot.collisions == 0:
         truth = robot.pose

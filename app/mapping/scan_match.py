@@ -751,23 +751,17 @@ class ScanLocalizer:
     def due(self, now_s: float) -> bool:
         return now_s >= self._due_s
 
-    def localize(
+    def scan_and_field(
         self,
         patch: NDArray[np.uint8],
         log_odds: NDArray[np.floating],
         world_grid: GroundGrid,
         thresholds: tuple[float, float],
         T_world_robot: Pose2D,
-        now_s: float,
-    ) -> Localization | None:
-        """Match the robot at ``T_world_robot`` (odometry) seeing ``patch`` against the
-        map (``log_odds`` with its free and occupied ``thresholds``); None when not due,
-        or with too little scan or map to match. Call it before the frame is fused: a
-        frame must not be matched against its own evidence."""
-        if not self.due(now_s):
-            return None
-        self._due_s = now_s + self.params.period_s
-        start_s = time.perf_counter()
+    ) -> tuple[NDArray[np.float64], LikelihoodField] | None:
+        """What a match at ``T_world_robot`` is made of: the scan's points the map can
+        judge (robot frame) and the likelihood field around the pose; None with too
+        few of either."""
         p = self.params
         scan = virtual_scan(
             patch,
@@ -800,6 +794,30 @@ class ScanLocalizer:
         )
         if field_.occupied_cells < p.min_occupied_cells:
             return None
+        return points, field_
+
+    def localize(
+        self,
+        patch: NDArray[np.uint8],
+        log_odds: NDArray[np.floating],
+        world_grid: GroundGrid,
+        thresholds: tuple[float, float],
+        T_world_robot: Pose2D,
+        now_s: float,
+    ) -> Localization | None:
+        """Match the robot at ``T_world_robot`` (odometry) seeing ``patch`` against the
+        map (``log_odds`` with its free and occupied ``thresholds``); None when not due,
+        or with too little scan or map to match. Call it before the frame is fused: a
+        frame must not be matched against its own evidence."""
+        if not self.due(now_s):
+            return None
+        self._due_s = now_s + self.params.period_s
+        start_s = time.perf_counter()
+        p = self.params
+        found = self.scan_and_field(patch, log_odds, world_grid, thresholds, T_world_robot)
+        if found is None:
+            return None
+        points, field_ = found
         self.attempts += 1
         match = match_scan(field_, points, T_world_robot, p.match)
         correction = None
