@@ -72,8 +72,12 @@ class SimCamera(ThreadedCamera):
 
     def _render_now(self) -> tuple[CameraFrame, RenderedFrame]:
         with self._render_lock:
+            # Stamped when the pose is taken, as a camera stamps its exposure: the render
+            # takes 10-20 ms in a running daemon, and a frame stamped after it was placed
+            # a degree or more behind in a spin turn (1.5 rad/s).
+            exposure_s = time.monotonic()
             rendered = self.renderer.render(self.pose_source())
-            frame = self._publish(rendered.image, time.monotonic())
+            frame = self._publish(rendered.image, exposure_s)
             pair = (frame, rendered)
             with self._lock:
                 self._truth = pair

@@ -8,7 +8,7 @@ from collections.abc import Callable
 from app.hardware.interfaces import DeviceState
 from app.mapping.frames import Pose2D
 from app.sim.camera import SimCamera
-from app.sim.render import CameraModel, Renderer
+from app.sim.render import CameraModel, RenderedFrame, Renderer
 from app.sim.world import parse_world
 
 
@@ -53,3 +53,27 @@ def test_sim_camera_on_demand_renders_the_current_pose() -> None:
         assert second[1].floor_mask.sum() < first[1].floor_mask.sum()
         assert camera.status().state == DeviceState.CONNECTED
     assert camera.status().state == DeviceState.DISCONNECTED
+
+
+def test_sim_camera_stamps_a_frame_when_its_pose_was_taken_not_after_rendering() -> None:
+    """A camera stamps its exposure; the pose lookup of a turning robot relies on it."""
+    world = parse_world("[start]\nx_m = 1.0\ny_m = 1.0\n[[rooms]]\nrect_m = [0, 0, 3, 2]\n")
+    renderer = Renderer(world, CameraModel(width_px=160, height_px=120, fx_px=125, fy_px=125))
+    render = renderer.render
+
+    def slow_render(pose: Pose2D) -> RenderedFrame:
+        time.sleep(0.05)
+        return render(pose)
+
+    renderer.render = slow_render  # type: ignore[method-assign]
+    taken_s: list[float] = []
+
+    def pose_source() -> Pose2D:
+        taken_s.append(time.monotonic())
+        return world.start_pose
+
+    with SimCamera(renderer, pose_source, fps=None) as camera:
+        before_s = time.monotonic()
+        frame = camera.latest(1.0)
+        assert frame is not None
+    assert before_s <= frame.timestamp_s <= taken_s[-1]
