@@ -265,7 +265,7 @@ def table(command: str, rows: list[dict[str, object]]) -> str:
         f"Command: `{command}`",
         "",
         "| world | matches (confident) | prior | match | confident: prior | confident: match |"
-        " heading only | Mahalanobis² median (calibrated: 2.37) |",
+        f" heading only | Mahalanobis² median (calibrated: {CHI2_3DOF_MEDIAN:.2f}) |",
         "|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
