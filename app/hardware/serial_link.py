@@ -63,6 +63,7 @@ from app.hardware.protocol import (
     encode_frame,
     telemetry_period_payload,
 )
+from app.hardware.stall_clock import StallClock, TtyDeliveryProbe
 
 log = logging.getLogger(__name__)
 
@@ -154,6 +155,11 @@ class UnoLinkConfig:
     silence_timeout_s: float = 0.2
     """No byte at all for this long = cable pulled or firmware hung (four telemetry
     periods, two heartbeats)."""
+    max_excused_stall_s: float = 2.0
+    """A stall of the kernel's tty layer still going on excuses the device's silence for
+    at most this long: a kernel that has stopped delivering bytes must not keep a silent
+    link looking alive (stalls of the host process itself are measured once they end,
+    and excused whole)."""
     backoff_initial_s: float = 0.1
     """First wait before reopening a failed port; doubles on every failed attempt."""
     backoff_max_s: float = 2.0
@@ -175,6 +181,7 @@ class UnoLinkConfig:
             "backoff_max_s",
             "port_poll_s",
             "close_timeout_s",
+            "max_excused_stall_s",
         )
         for name in positive:
             if not getattr(self, name) > 0:
@@ -447,10 +454,11 @@ def _retrieve_exception(future: asyncio.Future[Any]) -> None:
 class _Connection:
     """One open of the port, from open to close."""
 
-    def __init__(self, transport: ByteTransport, epoch: int) -> None:
+    def __init__(self, transport: ByteTransport, epoch: int, clock: StallClock) -> None:
         loop = asyncio.get_running_loop()
         self.transport = transport
         self.epoch = epoch
+        self.clock = clock
         self.decoder = FrameDecoder()
         self.banner: asyncio.Future[Banner] = loop.create_future()
         self.banner.add_done_callback(_retrieve_exception)
@@ -460,25 +468,36 @@ class _Connection:
         self.last_uptime_ms: int | None = None
         self.last_telemetry_s = 0.0  # on the awake clock (`awake_s`)
         self.last_flags = 0
-        self.stalled_s = 0.0
         self.tasks: list[asyncio.Task[None]] = []
         self.closed = False
 
     def awake_s(self) -> float:
-        """``time.monotonic()`` less the time the reader saw this process stalled.
+        """``time.monotonic()`` less the time the host could not hear the device (the
+        link's `StallClock`: its own stalls, seen by the reader, and the kernel's tty
+        layer's, seen by the `TtyDeliveryProbe`).
 
-        Silence is judged on this clock. While the host does not run (a VM paused, the
-        CPU starved, a long GC), a device on the same machine (the simulated Uno's
-        process, simavr) does not run either, and when both resume the host's timers
-        fire before the device has had a chance to speak: that is not a pulled cable.
-        A real Uno keeps talking through a host stall and its bytes wait in the OS
-        buffer, so for real hardware this clock changes nothing."""
-        return time.monotonic() - self.stalled_s
+        Silence and ACK timeouts are judged on this clock. While the host does not run
+        (a VM paused, the CPU starved, a long GC), a device on the same machine (the
+        simulated Uno's process, simavr) does not run either, and when both resume the
+        host's timers fire before the device has had a chance to speak: that is not a
+        pulled cable. A real Uno keeps talking through a host stall, but its bytes wait
+        in the kernel until the host reads them, so for real hardware this clock only
+        waits for bytes that are already there."""
+        return self.clock.awake_s()
 
-    def note_wait(self, waited_s: float, scheduled_s: float) -> None:
-        """A read scheduled for at most ``scheduled_s`` took ``waited_s``: what exceeds the
-        schedule by more than `STALL_TOLERANCE_S` was a stall, not time spent listening."""
-        self.stalled_s += max(0.0, waited_s - scheduled_s - STALL_TOLERANCE_S)
+    def note_wait(self, started_s: float, scheduled_s: float, returned_s: float) -> None:
+        """A read started at ``started_s`` for at most ``scheduled_s`` returned at
+        ``returned_s``: what exceeds the schedule by more than `STALL_TOLERANCE_S` was a
+        stall, not time spent listening."""
+        late_from_s = started_s + scheduled_s + STALL_TOLERANCE_S
+        self.clock.add(late_from_s, returned_s)
+
+    def note_gap(self, returned_s: float, next_started_s: float) -> None:
+        """The reader's last read returned at ``returned_s`` and the next began at
+        ``next_started_s``: a gap longer than `STALL_TOLERANCE_S` (the process
+        descheduled between the two, or frames that took that long to handle) was time
+        nobody listened."""
+        self.clock.add(returned_s + STALL_TOLERANCE_S, next_started_s)
 
 
 class UnoLink:
@@ -500,6 +519,7 @@ class UnoLink:
         config: UnoLinkConfig | None = None,
         transport_factory: Callable[[], ByteTransport] | None = None,
         on_telemetry: Callable[[ReceivedTelemetry], None] | None = None,
+        probe_kernel_tty: bool | None = None,
     ) -> None:
         self.port = os.fspath(port)
         self.config = config if config is not None else UnoLinkConfig()
@@ -533,6 +553,13 @@ class UnoLink:
         self._last_drive_tx_s = 0.0
         self._supervisor: asyncio.Task[None] | None = None
         self._first_attempt = asyncio.Event()
+        self.stall_clock = StallClock(max_excused_s=self.config.max_excused_stall_s)
+        """The time this host could not hear the device (see `_Connection.awake_s`)."""
+        if probe_kernel_tty is None:
+            probe_kernel_tty = transport_factory is None  # a real serial port
+        self.tty_probe = TtyDeliveryProbe(self.stall_clock) if probe_kernel_tty else None
+        """Times the kernel's tty layer, which every serial byte passes through."""
+        self._probe_task: asyncio.Task[None] | None = None
 
     # -- lifecycle ----------------------------------------------------------------------
 
@@ -543,6 +570,8 @@ class UnoLink:
         if self._supervisor is not None:
             raise RuntimeError("UnoLink already started")
         self._first_attempt.clear()
+        if self.tty_probe is not None:
+            self._probe_task = asyncio.create_task(self.tty_probe.run(), name="tty probe")
         self._supervisor = asyncio.create_task(self._supervise(), name=f"uno-link {self.port}")
         first = asyncio.create_task(self._first_attempt.wait())
         await asyncio.wait({first, self._supervisor}, return_when=asyncio.FIRST_COMPLETED)
@@ -563,6 +592,10 @@ class UnoLink:
                 await self._request(conn, MsgType.STOP)
         supervisor.cancel()
         await asyncio.wait({supervisor})
+        probe, self._probe_task = self._probe_task, None
+        if probe is not None:
+            probe.cancel()
+            await asyncio.wait({probe})
         for opened in {conn, self._conn}:  # the supervisor may have opened a newer one
             if opened is not None:
                 await self._close_connection(opened)
@@ -746,7 +779,7 @@ class UnoLink:
             if msg_type is MsgType.DRIVE:
                 self._last_drive_tx_s = now
             self.stats.commands_sent += 1
-            ack, received_s = await self._await_ack(pending)
+            ack, received_s = await self._await_ack(pending, conn)
         except TimeoutError:
             self.stats.timeouts += 1
             conn.consecutive_timeouts += 1
@@ -779,16 +812,19 @@ class UnoLink:
             raise CommandRejectedError(f"{msg_type.name} rejected by the Uno: {status}")
         return ack
 
-    async def _await_ack(self, pending: _Pending) -> tuple[Ack, float]:
-        try:
-            async with asyncio.timeout(self.config.ack_timeout_s):
-                return await pending.future
-        except TimeoutError:
-            # After a stalled event loop, the ACK and the timeout can land together.
-            future = pending.future
-            if future.done() and not future.cancelled() and future.exception() is None:
-                return future.result()
-            raise
+    async def _await_ack(self, pending: _Pending, conn: _Connection) -> tuple[Ack, float]:
+        """The ACK, or `TimeoutError` once ``ack_timeout_s`` has passed on the awake
+        clock: time the host could not hear the device is not the device's delay."""
+        future = pending.future
+        deadline_s = conn.awake_s() + self.config.ack_timeout_s
+        while not future.done():
+            remaining_s = deadline_s - conn.awake_s()
+            if remaining_s <= 0:
+                future.cancel()
+                raise TimeoutError
+            # Waiting does not cancel the future: a stall may leave time to wait on.
+            await asyncio.wait([future], timeout=remaining_s)
+        return future.result()
 
     # -- internals: supervisor ----------------------------------------------------------
 
@@ -869,7 +905,7 @@ class UnoLink:
         """Open the port and handshake; on success the link is CONNECTED."""
         self._epoch += 1
         transport = self._transport_factory()
-        conn = _Connection(transport, self._epoch)
+        conn = _Connection(transport, self._epoch, self.stall_clock)
         await transport.open(self.port, baudrate=self.config.baudrate)
         self._conn = conn
         conn.tasks.append(asyncio.create_task(self._read_loop(conn), name="uno-link reader"))
@@ -950,6 +986,7 @@ class UnoLink:
     async def _read_loop(self, conn: _Connection) -> None:
         cfg = self.config
         silent_since_s = conn.awake_s()
+        returned_s = time.monotonic()
         try:
             while True:
                 timeout_s = cfg.silence_timeout_s if conn.ready else cfg.handshake_timeout_s
@@ -963,8 +1000,10 @@ class UnoLink:
                     )
                 slice_s = min(remaining_s, timeout_s * SILENCE_SLICE_FRACTION)
                 started_s = time.monotonic()
+                conn.note_gap(returned_s, started_s)
                 data = await conn.transport.read(slice_s)
-                conn.note_wait(time.monotonic() - started_s, slice_s)
+                returned_s = time.monotonic()
+                conn.note_wait(started_s, slice_s, returned_s)
                 if not data:
                     continue
                 silent_since_s = conn.awake_s()

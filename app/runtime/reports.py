@@ -264,6 +264,11 @@ def report(rt: Runtime) -> dict[str, Any]:
             "timeouts": link.stats.timeouts,
             "crc_errors": link.stats.crc_errors,
             "rtt_ms_p50": link.stats.rtt_median_ms(),
+            # The kernel's tty layer, timed by the link's probe (recent bytes), and the
+            # time the host could not listen, excused from silence and ACK timeouts.
+            "tty_probe_ms_p50": _ms(link.tty_probe.latency_ms(50) if link.tty_probe else None),
+            "tty_probe_ms_max": _ms(link.tty_probe.latency_ms(100) if link.tty_probe else None),
+            "not_listening_s": round(link.stall_clock.stalled_s(), 3),
         },
         "uno_restarts": getattr(sim.uno, "restarts", None) if sim is not None else None,
         "rss_mb": rt.rss.summary(),
@@ -274,3 +279,7 @@ def report(rt: Runtime) -> dict[str, Any]:
         "final_motor_pwm": list(sim.uno.pwm) if sim is not None and sim.uno is not None else None,
         "pid": os.getpid(),
     }
+
+
+def _ms(value: float | None) -> float | None:
+    return None if value is None else round(value, 2)

@@ -348,3 +348,33 @@ def test_the_child_runs_in_a_session_and_scheduler_group_of_its_own(
     autogroup = Path(f"/proc/{uno.pid}/autogroup")
     if autogroup.exists():
         assert autogroup.read_text() != Path("/proc/self/autogroup").read_text()
+
+
+def test_the_child_and_its_threads_get_the_cpu_when_they_want_it(
+    uno: SimulatedUnoProcess,
+) -> None:
+    # A board on its own is never starved by the host's load: the child asks for the
+    # lowest real-time priority (root here in CI), else a raised nice value.
+    pid = uno.pid
+    assert pid is not None
+    threads = [int(tid) for tid in os.listdir(f"/proc/{pid}/task")]
+    assert len(threads) >= 2  # the simulator's threads were started after the request
+    try:
+        os.sched_setscheduler(0, os.SCHED_FIFO, os.sched_param(1))
+    except OSError:
+        may_use_realtime = False
+    else:
+        may_use_realtime = True
+        os.sched_setscheduler(0, os.SCHED_OTHER, os.sched_param(0))
+    if not may_use_realtime:
+        original = os.getpriority(os.PRIO_PROCESS, 0)
+        try:
+            os.setpriority(os.PRIO_PROCESS, 0, -10)
+        except OSError:
+            pytest.skip("neither real-time priority nor a raised nice value is allowed here")
+        os.setpriority(os.PRIO_PROCESS, 0, original)
+    for tid in threads:
+        if may_use_realtime:
+            assert os.sched_getscheduler(tid) == os.SCHED_FIFO
+        else:
+            assert os.getpriority(os.PRIO_PROCESS, tid) == -10
