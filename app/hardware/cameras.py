@@ -38,6 +38,26 @@ from app.imageio import ImageFileError, decode_bgr_bytes, read_bgr
 log = logging.getLogger(__name__)
 
 IMAGE_SUFFIXES = frozenset({".jpg", ".jpeg", ".png", ".bmp"})
+DRIVER_STAMP_MAX_AGE_S = 1.0
+"""A driver's frame stamp older than this when read() returns is not on
+``time.monotonic``'s clock (a driver stamping wall time) and is not used."""
+
+
+def capture_time_s(driver_stamp_ms: float, read_returned_s: float) -> float:
+    """When a webcam frame was captured, on ``time.monotonic``'s clock.
+
+    A V4L2 driver stamps every buffer with CLOCK_MONOTONIC (``uvcvideo``: when the
+    frame's first packet arrived), and OpenCV hands that stamp out as
+    ``CAP_PROP_POS_MSEC``. It is earlier than read()'s return by the USB transfer, the
+    decode and the wait for this thread, which at 1.5 rad/s of spin is a degree or
+    more of heading for the pose the frame is fused at. A stamp that is not before the
+    return, or is older than `DRIVER_STAMP_MAX_AGE_S`, is from another clock (or none:
+    0); the return time is used then.
+    """
+    driver_s = driver_stamp_ms / 1000.0
+    if 0.0 <= read_returned_s - driver_s <= DRIVER_STAMP_MAX_AGE_S:
+        return driver_s
+    return read_returned_s
 
 
 class ThreadedCamera(ABC):
@@ -149,6 +169,8 @@ class OpenCVCamera(ThreadedCamera):
         self.fps = fps
         self.retry_initial_s = retry_initial_s
         self.retry_max_s = retry_max_s
+        self.driver_stamped = False
+        """The last frame carries the driver's capture stamp (else read()'s return)."""
 
     def _connect(self) -> cv2.VideoCapture | None:
         if isinstance(self.device, str) and not Path(self.device).exists():
@@ -178,7 +200,10 @@ class OpenCVCamera(ThreadedCamera):
                         if not ok or image is None:
                             self._set_status(DeviceState.FAILED, f"{self.device}: read failed")
                             break
-                        self._publish(np.ascontiguousarray(image), time.monotonic())
+                        returned_s = time.monotonic()
+                        stamp_s = capture_time_s(cap.get(cv2.CAP_PROP_POS_MSEC), returned_s)
+                        self.driver_stamped = stamp_s != returned_s
+                        self._publish(np.ascontiguousarray(image), stamp_s)
                         self._set_status(DeviceState.CONNECTED)
                         backoff = self.retry_initial_s
                 finally:

@@ -10,7 +10,7 @@ import cv2
 import numpy as np
 import pytest
 
-from app.hardware.cameras import OpenCVCamera, ReplayCamera
+from app.hardware.cameras import OpenCVCamera, ReplayCamera, capture_time_s
 from app.hardware.interfaces import DeviceState
 
 
@@ -97,6 +97,52 @@ def test_replay_missing_source_fails(tmp_path: Path) -> None:
     with ReplayCamera(tmp_path / "nope.mp4") as camera:
         assert _wait(lambda: camera.status().state == DeviceState.FAILED)
         assert "no such" in camera.status().detail
+
+
+def test_capture_time_is_the_drivers_monotonic_stamp_when_it_is_one() -> None:
+    returned_s = 5000.0
+    assert capture_time_s(4999.955 * 1000, returned_s) == pytest.approx(4999.955)
+    assert capture_time_s(0.0, returned_s) == returned_s  # no stamp (a first frame)
+    assert capture_time_s(1.79e12, returned_s) == returned_s  # wall-clock milliseconds
+    assert capture_time_s(5000.2 * 1000, returned_s) == returned_s  # after the return
+    assert capture_time_s(3000.0 * 1000, returned_s) == returned_s  # far too old
+
+
+class _StampingCapture:
+    """A V4L2 capture as OpenCV shows it: frames with a monotonic driver stamp taken
+    40 ms before read() returns (the USB transfer)."""
+
+    def __init__(self) -> None:
+        self.stamp_ms = 0.0
+        self.stamps_s: list[float] = []
+
+    def read(self) -> tuple[bool, np.ndarray]:
+        time.sleep(0.01)
+        self.stamp_ms = (time.monotonic() - 0.040) * 1000
+        self.stamps_s.append(self.stamp_ms / 1000)
+        return True, np.zeros((48, 64, 3), np.uint8)
+
+    def get(self, prop: int) -> float:
+        return self.stamp_ms if prop == cv2.CAP_PROP_POS_MSEC else 0.0
+
+    def release(self) -> None:
+        pass
+
+
+def test_opencv_camera_stamps_frames_with_the_drivers_capture_time() -> None:
+    capture = _StampingCapture()
+
+    class StampedCamera(OpenCVCamera):
+        def _connect(self) -> cv2.VideoCapture | None:
+            return capture  # type: ignore[return-value]
+
+    with StampedCamera(0) as camera:
+        assert _wait(lambda: camera.latest(1.0) is not None)
+        frame = camera.latest(1.0)
+        assert frame is not None
+        assert frame.timestamp_s in capture.stamps_s  # the driver's, not read()'s return
+        assert camera.driver_stamped
+        assert time.monotonic() - frame.timestamp_s >= 0.040
 
 
 def test_opencv_camera_missing_device_fails_and_retries() -> None:
