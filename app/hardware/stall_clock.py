@@ -133,8 +133,6 @@ class TtyDeliveryProbe:
         self.tolerance_s = tolerance_s
         self.latencies_s: deque[float] = deque(maxlen=2000)
         """Write-to-read times of the probe's bytes, newest last."""
-        self.stalled_total_s = 0.0
-        """The kernel-side stall time reported so far (before the union with others)."""
         self._sent_s: float | None = None
         self._arrived = asyncio.Event()
 
@@ -189,7 +187,6 @@ class TtyDeliveryProbe:
         if sent_s is None:
             return
         self.latencies_s.append(now_s - sent_s)
-        self.stalled_total_s += max(0.0, now_s - sent_s - self.tolerance_s)
         # Ends the stall that `run` began (nothing is counted if the byte was on time).
         self.clock.end_stall(now_s)
         self._arrived.set()

@@ -5,7 +5,8 @@ from __future__ import annotations
 
 import math
 import statistics
-from collections.abc import Iterator
+from collections import deque
+from collections.abc import Callable, Iterator, Sequence
 from dataclasses import dataclass
 from typing import Any
 
@@ -138,41 +139,87 @@ class Counters:
 
 
 class RssWatch:
-    """Resident memory sampled over the run: the start, the first minute (when caches and
-    compiled kernels have settled), the peak and the end, so growth after warm-up shows."""
+    """Resident memory sampled over the run: the start, the first minute after warm-up
+    (when caches and compiled kernels have settled), the steady state, the peak and the
+    end, so growth after warm-up shows.
 
-    def __init__(self, settle_s: float = 60.0, period_s: float = 1.0) -> None:
+    One reading is not a level: it swings by 10-20 MB with the frames' arrays in flight
+    (measured at 15 s spacing in a run whose baseline did not move: 281-300 MB within one
+    minute), so a growth figure from two readings measures where each fell in that
+    swing. The levels are medians over ``window_s`` of readings: the minute that starts
+    at ``settle_s``, the last minute, and every reading after ``settle_s`` (kept in a ring
+    of ``maxlen`` float32s; a day at 1 Hz is 346 kB).
+
+    Parameters
+    ----------
+    settle_s : when warm-up is over (the first level is measured from here).
+    period_s : the least time between readings (`sample` is called more often).
+    window_s : the span of readings one level is the median of.
+    read_mb : the reader (`rss_mb`; tests pass their own).
+    """
+
+    def __init__(
+        self,
+        settle_s: float = 60.0,
+        period_s: float = 1.0,
+        window_s: float = 60.0,
+        *,
+        maxlen: int = 86_400,
+        read_mb: Callable[[], float | None] = rss_mb,
+    ) -> None:
         self.settle_s = settle_s
         self.period_s = period_s
+        self.window_s = window_s
+        self._read_mb = read_mb
         self._last_s = -math.inf
         self.start_mb: float | None = None
-        self.settled_mb: float | None = None
         self.peak_mb: float | None = None
         self.last_mb: float | None = None
+        self._settling: list[float] = []
+        self._recent: deque[tuple[float, float]] = deque()
+        self._settled = FloatWindow(maxlen)
 
     def sample(self, elapsed_s: float, *, force: bool = False) -> None:
         """Read the RSS if ``period_s`` passed since the last reading (or ``force``)."""
         if not force and elapsed_s - self._last_s < self.period_s:
             return
         self._last_s = elapsed_s
-        mb = rss_mb()
+        mb = self._read_mb()
         if mb is None:
             return
         if self.start_mb is None:
             self.start_mb = mb
-        if self.settled_mb is None and elapsed_s >= self.settle_s:
-            self.settled_mb = mb
         self.peak_mb = mb if self.peak_mb is None else max(self.peak_mb, mb)
         self.last_mb = mb
+        if elapsed_s < self.settle_s:
+            return
+        if elapsed_s < self.settle_s + self.window_s:
+            self._settling.append(mb)
+        self._settled.append(mb)
+        self._recent.append((elapsed_s, mb))
+        while self._recent[0][0] < elapsed_s - self.window_s:
+            self._recent.popleft()
 
     def summary(self) -> dict[str, float | None]:
+        """MB: ``after_first_minute`` (median of the minute after ``settle_s``), ``end``
+        (median of the last minute), ``steady_median`` (of every reading after
+        ``settle_s``), ``peak`` and ``last`` (single readings), and the growth of ``end``
+        over ``after_first_minute`` in percent; None where there are no readings."""
+
+        def median(values: Sequence[float]) -> float | None:
+            return round(float(statistics.median(values)), 2) if len(values) else None
+
+        settled = median(self._settling)
+        end = median([mb for _, mb in self._recent])
         growth = None
-        if self.settled_mb and self.last_mb is not None:
-            growth = round((self.last_mb / self.settled_mb - 1.0) * 100.0, 2)
+        if settled and end is not None:
+            growth = round((end / settled - 1.0) * 100.0, 2)
         return {
             "start": self.start_mb,
-            "after_first_minute": self.settled_mb,
+            "after_first_minute": settled,
+            "steady_median": median(self._settled.values().tolist()),
             "peak": self.peak_mb,
-            "end": self.last_mb,
+            "end": end,
+            "last": self.last_mb,
             "growth_after_first_minute_pct": growth,
         }

@@ -202,7 +202,11 @@ def main(argv: list[str] | None = None) -> int:
         help="the plant's encoder counts at start (so a restarted Uno counts from them)",
     )
     args = parser.parse_args(argv)
-    _stand_apart()
+    got = _stand_apart()
+    if got != "SCHED_FIFO 1":
+        # Said once, in the daemon's log (stderr is shared): on a saturated machine a
+        # board at normal priority can be late enough for the host to call it silent.
+        print(f"uno_process: no real-time priority, running at {got}", file=sys.stderr, flush=True)
 
     # The host decides when this process ends: a Ctrl-C meant for the daemon reaches
     # the whole process group, and the daemon still has to stop the motors through us.
