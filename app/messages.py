@@ -31,9 +31,12 @@ class State(StrEnum):
 
 @dataclass(frozen=True)
 class FrameMsg:
+    """A camera frame. ``arrived_s``: when the host had it (`CameraFrame.arrived_s`)."""
+
     image: NDArray[np.uint8] = field(repr=False)
     capture_s: float
     seq: int
+    arrived_s: float | None = None
 
     def age_s(self, now_s: float | None = None) -> float:
         return (time.monotonic() if now_s is None else now_s) - self.capture_s
@@ -59,6 +62,8 @@ class FloorMsg:
     timings_ms: dict[str, float]
     zone_floor_confidence: float
     unsure_mask: NDArray[np.bool_] | None = field(default=None, repr=False)
+    arrived_s: float | None = None
+    """When the host had the frame (`FrameMsg.arrived_s`)."""
 
     def age_s(self, now_s: float | None = None) -> float:
         return (time.monotonic() if now_s is None else now_s) - self.capture_s
@@ -92,6 +97,8 @@ class MapMsg:
     frontier_reason: str
     clearance_ahead_m: float
     zone_known_floor: float | None = None
+    arrived_s: float | None = None
+    """When the host had the frame (`FrameMsg.arrived_s`)."""
 
     def age_s(self, now_s: float | None = None) -> float:
         return (time.monotonic() if now_s is None else now_s) - self.capture_s

@@ -48,12 +48,19 @@ class MuxOutput:
     stamp_s : when the chosen input was made (for latency), or the query time for zeros
     origin_s : the capture time of the data the command came from (autonomy), else
         ``stamp_s``
+    arrived_s : when the host had that data (autonomy: the frame's arrival, after
+        the camera's transfer or the simulator's render), else ``origin_s``
     """
 
     twist: Twist
     source: str
     stamp_s: float
     origin_s: float
+    arrived_s: float | None = None
+
+    @property
+    def arrival_s(self) -> float:
+        return self.origin_s if self.arrived_s is None else self.arrived_s
 
 
 class TeleopRefusedError(Exception):
@@ -66,6 +73,7 @@ class _Input:
     stamp_s: float
     origin_s: float
     driver: str = ""
+    arrived_s: float | None = None
 
 
 class CommandMux:
@@ -131,10 +139,18 @@ class CommandMux:
         current = self._live_teleop(now_s)
         return None if current is None else current.driver
 
-    def autonomy(self, twist: Twist, now_s: float, *, origin_s: float | None = None) -> None:
+    def autonomy(
+        self,
+        twist: Twist,
+        now_s: float,
+        *,
+        origin_s: float | None = None,
+        arrived_s: float | None = None,
+    ) -> None:
         """A command from the autonomous steering; ``origin_s`` is when its camera frame
-        was captured."""
-        self._autonomy = _Input(twist, now_s, now_s if origin_s is None else origin_s)
+        was captured, ``arrived_s`` when the host had it."""
+        origin_s = now_s if origin_s is None else origin_s
+        self._autonomy = _Input(twist, now_s, origin_s, arrived_s=arrived_s)
 
     def clear_autonomy(self) -> None:
         self._autonomy = None
@@ -149,7 +165,13 @@ class CommandMux:
             return MuxOutput(teleop.twist, "teleop", teleop.stamp_s, teleop.origin_s)
         autonomy = self._autonomy
         if autonomy is not None and now_s - autonomy.stamp_s <= self.autonomy_timeout_s:
-            return MuxOutput(autonomy.twist, "autonomy", autonomy.stamp_s, autonomy.origin_s)
+            return MuxOutput(
+                autonomy.twist,
+                "autonomy",
+                autonomy.stamp_s,
+                autonomy.origin_s,
+                autonomy.arrived_s,
+            )
         if self._teleop is not None or self._autonomy is not None:
             # An input was given and went quiet: say so with an explicit zero.
             return MuxOutput(ZERO, "timeout", now_s, now_s)

@@ -119,9 +119,13 @@ class ThreadedCamera(ABC):
         if changed and state in (DeviceState.FAILED, DeviceState.ENDED):
             log.info("%s: %s %s", self._thread_name, state, detail)
 
-    def _publish(self, image: NDArray[np.uint8], timestamp_s: float) -> CameraFrame:
+    def _publish(
+        self, image: NDArray[np.uint8], timestamp_s: float, arrived_s: float | None = None
+    ) -> CameraFrame:
         with self._lock:
-            frame = CameraFrame(image=image, timestamp_s=timestamp_s, seq=self._seq)
+            frame = CameraFrame(
+                image=image, timestamp_s=timestamp_s, seq=self._seq, arrived_s=arrived_s
+            )
             self._seq += 1
             self._frame = frame
         return frame
@@ -203,7 +207,7 @@ class OpenCVCamera(ThreadedCamera):
                         returned_s = time.monotonic()
                         stamp_s = capture_time_s(cap.get(cv2.CAP_PROP_POS_MSEC), returned_s)
                         self.driver_stamped = stamp_s != returned_s
-                        self._publish(np.ascontiguousarray(image), stamp_s)
+                        self._publish(np.ascontiguousarray(image), stamp_s, returned_s)
                         self._set_status(DeviceState.CONNECTED)
                         backoff = self.retry_initial_s
                 finally:

@@ -33,13 +33,21 @@ class CameraFrame:
     Attributes
     ----------
     image : (H, W, 3) uint8 BGR
-    timestamp_s : float, ``time.monotonic()`` at capture
+    timestamp_s : float, ``time.monotonic()`` at capture (the exposure)
     seq : int, increasing per camera from 0
+    arrived_s : float or None, ``time.monotonic()`` when the host had the image (after
+        the USB transfer and the decode; after the render in the simulator); None: at
+        ``timestamp_s``. From here on the latency is the host's own.
     """
 
     image: NDArray[np.uint8]
     timestamp_s: float
     seq: int
+    arrived_s: float | None = None
+
+    @property
+    def arrival_s(self) -> float:
+        return self.timestamp_s if self.arrived_s is None else self.arrived_s
 
 
 @dataclass(frozen=True)

@@ -8,6 +8,7 @@ the layer below all of these."""
 
 from __future__ import annotations
 
+import dataclasses
 import logging
 import math
 
@@ -71,7 +72,7 @@ def premise_broken(
 
 def without_forward_motion(out: MuxOutput) -> MuxOutput:
     """``out`` with its forward speed taken away (turning stays allowed)."""
-    return MuxOutput(Twist(0.0, out.twist.omega_rad_s), out.source, out.stamp_s, out.origin_s)
+    return dataclasses.replace(out, twist=Twist(0.0, out.twist.omega_rad_s))
 
 
 class SafetyGate:
@@ -202,6 +203,9 @@ class DriveStage:
         self.gate = SafetyGate(shared)
         self.latencies = FloatWindow()
         """Capture-to-command latency of each new autonomy command (seconds)."""
+        self.host_latencies = FloatWindow()
+        """The same from the frame's arrival at the host (seconds): the host's part,
+        without the camera's transfer (or the simulator's render)."""
         self.latencies_total = 0
         self._last_latency_origin = -1.0
         self._last_pwm: tuple[int, int] | None = None
@@ -243,6 +247,7 @@ class DriveStage:
             if new_autonomy:
                 self._last_latency_origin = out.origin_s
                 self.latencies.append(sent - out.origin_s)
+                self.host_latencies.append(sent - out.arrival_s)
                 self.latencies_total += 1
             decision = shared.decisions.peek()
             shared.drives.publish(

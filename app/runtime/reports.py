@@ -184,6 +184,7 @@ def report(rt: Runtime) -> dict[str, Any]:
         "frames_skipped_by_capture": counters.frames_skipped,
         "bad_frames": counters.bad_frames,
         "latency_ms": percentiles_ms(rt.drive.latencies),
+        "latency_from_arrival_ms": percentiles_ms(rt.drive.host_latencies),
         "frame_age_at_perception_ms": percentiles_ms(rt.perception.frame_ages),
         "floor_wait_for_mapping_ms": percentiles_ms(rt.mapping.floor_waits),
         "map_wait_for_steering_ms": percentiles_ms(rt.steering_stage.map_waits),

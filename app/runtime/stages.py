@@ -160,7 +160,9 @@ class CaptureStage:
                     shared.counters.frames_skipped += frame.seq - last_seq - 1
                 last_seq = frame.seq
                 shared.counters.frames_captured += 1
-                shared.frames.publish(FrameMsg(frame.image, frame.timestamp_s, frame.seq))
+                shared.frames.publish(
+                    FrameMsg(frame.image, frame.timestamp_s, frame.seq, frame.arrived_s)
+                )
             shared.camera_ok = frame is not None
             await asyncio.sleep(CAPTURE_POLL_S)
 
@@ -232,6 +234,7 @@ class PerceptionStage:
                     result.timings_ms,
                     result.zone_floor_confidence,
                     result.unsure_mask,
+                    frame.arrived_s,
                 )
             )
 
@@ -428,6 +431,7 @@ class MappingStage:
             frontier_reason=reason,
             clearance_ahead_m=clearance,
             zone_known_floor=update.zone_known_floor,
+            arrived_s=floor.arrived_s,
         )
         return msg, update
 
@@ -736,7 +740,9 @@ class SteeringStage:
             shared.stages.add("steering", shared.clock() - start)
             self.reasons[decision.reason] = self.reasons.get(decision.reason, 0) + 1
             shared.decisions.publish(decision)
-            shared.mux.autonomy(decision.twist, shared.clock(), origin_s=msg.capture_s)
+            shared.mux.autonomy(
+                decision.twist, shared.clock(), origin_s=msg.capture_s, arrived_s=msg.arrived_s
+            )
             shared.wake_drive.set()
 
 

@@ -77,7 +77,7 @@ class SimCamera(ThreadedCamera):
             # a degree or more behind in a spin turn (1.5 rad/s).
             exposure_s = time.monotonic()
             rendered = self.renderer.render(self.pose_source())
-            frame = self._publish(rendered.image, exposure_s)
+            frame = self._publish(rendered.image, exposure_s, time.monotonic())
             pair = (frame, rendered)
             with self._lock:
                 self._truth = pair

@@ -25,6 +25,17 @@ def test_autonomy_drives_with_its_capture_time() -> None:
     mux.autonomy(FWD, 10.0, origin_s=9.98)
     out = mux.output(10.01)
     assert (out.twist, out.source, out.origin_s) == (FWD, "autonomy", 9.98)
+    assert out.arrival_s == 9.98  # no arrival given: the capture
+
+
+def test_autonomy_carries_when_the_host_had_its_frame() -> None:
+    mux = make()
+    mux.autonomy(FWD, 10.0, origin_s=9.95, arrived_s=9.97)
+    out = mux.output(10.01)
+    assert (out.origin_s, out.arrival_s) == (9.95, 9.97)
+    teleop = make()
+    teleop.teleop("alice", FWD, 10.0)
+    assert teleop.output(10.01).arrival_s == 10.0
 
 
 def test_teleop_overrides_autonomy_then_autonomy_resumes_after_timeout() -> None:

@@ -143,6 +143,9 @@ def test_opencv_camera_stamps_frames_with_the_drivers_capture_time() -> None:
         assert frame.timestamp_s in capture.stamps_s  # the driver's, not read()'s return
         assert camera.driver_stamped
         assert time.monotonic() - frame.timestamp_s >= 0.040
+        # The host had it when read() returned, the transfer after the exposure.
+        assert frame.arrived_s is not None
+        assert frame.arrival_s - frame.timestamp_s == pytest.approx(0.040, abs=0.005)
 
 
 def test_opencv_camera_missing_device_fails_and_retries() -> None:

@@ -82,6 +82,10 @@ async def test_autonomy_drives_and_shutdown_stops_the_motors() -> None:
         pose = sim.robot.pose
         assert (pose.x_m, pose.y_m, pose.theta_rad) != start
         assert rt.latencies, "autonomy commands carry their capture-to-command latency"
+        # From the frame's arrival (after the simulator's render) is the host's part.
+        from_arrival = rt.drive.host_latencies.values()
+        assert len(from_arrival) == len(rt.latencies)
+        assert (from_arrival < rt.latencies.values()).all()
         uno = sim.uno
     await asyncio.sleep(0)
     assert task.done() and task.exception() is None
