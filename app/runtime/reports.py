@@ -264,6 +264,9 @@ def report(rt: Runtime) -> dict[str, Any]:
             "reconnects": link.stats.reconnects,
             "timeouts": link.stats.timeouts,
             "crc_errors": link.stats.crc_errors,
+            # The Uno's own deadman cut the motors while the host was driving: DRIVEs
+            # (or heartbeats) reached it more than 250 ms apart.
+            "deadman_trips_seen": link.stats.deadman_trips_seen,
             "rtt_ms_p50": link.stats.rtt_median_ms(),
             # The kernel's tty layer, timed by the link's probe (recent bytes), and the
             # time the host could not listen, excused from silence and ACK timeouts.

@@ -96,6 +96,9 @@ def test_sigterm_stops_the_motors_and_writes_the_report(tmp_path: Path) -> None:
     ):
         assert key in data
     assert set(data["latency_ms"]) >= {"p50", "p95", "max"}
+    assert set(data["latency_from_arrival_ms"]) >= {"p50", "p95", "max"}
+    assert set(data["rss_mb"]) >= {"after_first_minute", "end", "steady_median", "peak"}
+    assert isinstance(data["serial"]["deadman_trips_seen"], int)
 
 
 def test_simulated_camera_with_a_real_uno_is_refused_naming_the_key() -> None:
