@@ -45,10 +45,6 @@ class CameraFrame:
     seq: int
     arrived_s: float | None = None
 
-    @property
-    def arrival_s(self) -> float:
-        return self.timestamp_s if self.arrived_s is None else self.arrived_s
-
 
 @dataclass(frozen=True)
 class DeviceStatus:

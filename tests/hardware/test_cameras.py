@@ -145,7 +145,7 @@ def test_opencv_camera_stamps_frames_with_the_drivers_capture_time() -> None:
         assert time.monotonic() - frame.timestamp_s >= 0.040
         # The host had it when read() returned, the transfer after the exposure.
         assert frame.arrived_s is not None
-        assert frame.arrival_s - frame.timestamp_s == pytest.approx(0.040, abs=0.005)
+        assert frame.arrived_s - frame.timestamp_s == pytest.approx(0.040, abs=0.005)
 
 
 def test_opencv_camera_missing_device_fails_and_retries() -> None:

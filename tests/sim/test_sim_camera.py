@@ -78,4 +78,4 @@ def test_sim_camera_stamps_a_frame_when_its_pose_was_taken_not_after_rendering()
         assert frame is not None
     assert before_s <= frame.timestamp_s <= taken_s[-1]
     # It arrives after the render, as a webcam's frame after its transfer.
-    assert frame.arrival_s - frame.timestamp_s >= 0.05
+    assert frame.arrived_s is not None and frame.arrived_s - frame.timestamp_s >= 0.05
