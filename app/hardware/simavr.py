@@ -50,7 +50,7 @@ class SimavrUno:
     ----------
     plant : optional `MotorPlant` that receives every motor change the harness reports
         (the simulated robot's wheels); its encoder counts are fed back to the firmware
-        as encoder pulse rates every ``encoder_period_s``
+        as quadrature pulses, caught up every ``encoder_period_s``
     build : run ``make -C firmware`` first (a no-op when up to date)
     """
 
@@ -125,21 +125,18 @@ class SimavrUno:
                 pass  # the harness is gone; close() reports nothing more to do
 
     def _feed_encoders(self) -> None:
-        """The plant's encoder count rates become the harness's encoder pulse rates (the
-        firmware counts one tick per channel-A rising edge)."""
+        """The plant's encoder counts become the harness's encoder targets (``ENCPOS``,
+        one count per cycle of channel A). Counts, not rates: a rate computed over the
+        nominal period and applied for the next one drops the step under way at every
+        change and miscounts whenever this thread wakes late (a busy daemon), so the
+        firmware's count would drift from the wheels'; a target is met exactly."""
         assert self.plant is not None
-        previous = self.plant.read_encoders()
-        sent = (0, 0)
+        sent: tuple[int, int] | None = None
         while not self._stop.wait(self.encoder_period_s):
             counts = self.plant.read_encoders()
-            rates = tuple(
-                round((now - before) / self.encoder_period_s)
-                for now, before in zip(counts, previous, strict=True)
-            )
-            previous = counts
-            if rates != sent:
-                self._send(f"ENC {rates[0]} {rates[1]}")
-                sent = (rates[0], rates[1])
+            if counts != sent:
+                self._send(f"ENCPOS {counts[0]} {counts[1]}")
+                sent = counts
 
     def _follow(self) -> None:
         assert self._proc is not None and self._proc.stdout is not None

@@ -52,8 +52,8 @@ enum : uint8_t { FLAG_DEADMAN_TRIPPED = 0x01, FLAG_STOPPED = 0x02 };
 
 // ---- state --------------------------------------------------------------------------
 FrameDecoder decoder;
-volatile int32_t encoderLeft = 0;   // written by the encoder interrupts
-volatile int32_t encoderRight = 0;
+volatile int32_t encoderLeft = 0;   // written by the encoder interrupts: half counts
+volatile int32_t encoderRight = 0;  // with quadrature (see encoderStep), else counts
 int16_t appliedLeft = 0;            // what the H-bridge is being told right now
 int16_t appliedRight = 0;
 bool driving = false;               // a DRIVE is in force, so the deadman is armed
@@ -81,20 +81,38 @@ void setMotors(int16_t left, int16_t right) {
 }
 
 // ---- encoders -----------------------------------------------------------------------
-// Called on each rising edge of channel A. With quadrature, B is low at that moment
-// when the wheel turns forward (A leads B) and high when it turns backward.
-int8_t encoderStep(uint8_t pinB, int16_t applied) {
+// With quadrature, called on both edges of channel A: a half count forward when A and B
+// differ just after the edge (A leads B), backward when they agree. Counting only A's
+// rising edges, with B as the sign, gains a count each time a wheel turns back across
+// that edge (backing up, a spin turn's reversal, a stopped wheel's jitter), since going
+// back the wheel crosses a falling edge; both edges keep the count where the wheel is.
+// Single channel: called on A's rising edge, the count follows the applied PWM's sign.
+int8_t encoderStep(uint8_t pinA, uint8_t pinB, int16_t applied) {
 #if ENCODER_QUADRATURE
   (void)applied;
-  return digitalRead(pinB) == LOW ? 1 : -1;
+  return digitalRead(pinA) != digitalRead(pinB) ? 1 : -1;
 #else
+  (void)pinA;
   (void)pinB;
   return applied < 0 ? -1 : 1;
 #endif
 }
 
-void onLeftEncoder() { encoderLeft += encoderStep(PIN_LEFT_ENC_B, appliedLeft); }
-void onRightEncoder() { encoderRight += encoderStep(PIN_RIGHT_ENC_B, appliedRight); }
+void onLeftEncoder() {
+  encoderLeft += encoderStep(PIN_LEFT_ENC_A, PIN_LEFT_ENC_B, appliedLeft);
+}
+void onRightEncoder() {
+  encoderRight += encoderStep(PIN_RIGHT_ENC_A, PIN_RIGHT_ENC_B, appliedRight);
+}
+
+// Whole counts (one per cycle of A, as the host's ticks_per_rev counts them).
+int32_t encoderCount(int32_t raw) {
+#if ENCODER_QUADRATURE
+  return raw >> 1;  // floor: half counts round towards minus infinity, both ways
+#else
+  return raw;
+#endif
+}
 
 // ---- sending ------------------------------------------------------------------------
 void put16(uint8_t *p, uint16_t v) {
@@ -137,8 +155,8 @@ void sendBanner(uint8_t seq) {
 void sendTelemetry(uint32_t now) {
   int32_t left, right;
   ATOMIC_BLOCK(ATOMIC_RESTORESTATE) {  // 32-bit counts change inside interrupts
-    left = encoderLeft;
-    right = encoderRight;
+    left = encoderCount(encoderLeft);
+    right = encoderCount(encoderRight);
   }
   uint32_t since = everDriven ? now - lastDriveMs : 0xFFFF;
   uint8_t p[25];
@@ -246,8 +264,13 @@ void setup() {
   pinMode(PIN_RIGHT_ENC_A, INPUT_PULLUP);
   pinMode(PIN_LEFT_ENC_B, INPUT_PULLUP);
   pinMode(PIN_RIGHT_ENC_B, INPUT_PULLUP);
-  attachInterrupt(digitalPinToInterrupt(PIN_LEFT_ENC_A), onLeftEncoder, RISING);
-  attachInterrupt(digitalPinToInterrupt(PIN_RIGHT_ENC_A), onRightEncoder, RISING);
+#if ENCODER_QUADRATURE
+  const int encoderEdges = CHANGE;
+#else
+  const int encoderEdges = RISING;
+#endif
+  attachInterrupt(digitalPinToInterrupt(PIN_LEFT_ENC_A), onLeftEncoder, encoderEdges);
+  attachInterrupt(digitalPinToInterrupt(PIN_RIGHT_ENC_A), onRightEncoder, encoderEdges);
 
   Serial.begin(115200);
   sendBanner(0);

@@ -18,7 +18,11 @@
  *   one after another and the half-set states in between are not real commands.
  * - stdin commands: "START"; "ENC <left_hz> <right_hz>" drives quadrature encoder
  *   signals (channel A rising edges per second, the sign is the direction) on pins
- *   2/4 (left) and 3/5 (right); "QUIT". End of stdin or SIGTERM/SIGINT exits.
+ *   2/4 (left) and 3/5 (right); "ENCPOS <left> <right>" sets where each encoder's
+ *   count must get to (cycles of channel A since start, signed) and spreads the
+ *   edges still owed over the time since the previous ENCPOS, so the firmware counts
+ *   exactly what a host-side plant counted, whenever the lines arrive; "QUIT". End of
+ *   stdin or SIGTERM/SIGINT exits.
  * - Exits with _exit(): uart_pty_stop() can hang waiting for its thread.
  */
 #define _GNU_SOURCE
@@ -59,6 +63,8 @@ static atomic_int quit_requested;
 static atomic_int start_requested;
 static atomic_int enc_hz[2];        /* set by the stdin thread, read by the CPU loop */
 static atomic_int enc_generation;
+static _Atomic long long enc_target[2]; /* ENCPOS counts, read by the CPU loop */
+static atomic_int target_generation;
 
 static void on_signal(int sig) {
 	(void)sig;
@@ -70,12 +76,17 @@ static void *stdin_reader(void *arg) {
 	char line[128];
 	while (fgets(line, sizeof line, stdin)) {
 		int left, right;
+		long long left_count, right_count;
 		if (strncmp(line, "START", 5) == 0) {
 			atomic_store(&start_requested, 1);
 		} else if (sscanf(line, "ENC %d %d", &left, &right) == 2) {
 			atomic_store(&enc_hz[0], left);
 			atomic_store(&enc_hz[1], right);
 			atomic_fetch_add(&enc_generation, 1);
+		} else if (sscanf(line, "ENCPOS %lld %lld", &left_count, &right_count) == 2) {
+			atomic_store(&enc_target[0], left_count);
+			atomic_store(&enc_target[1], right_count);
+			atomic_fetch_add(&target_generation, 1);
 		} else if (strncmp(line, "QUIT", 4) == 0) {
 			break;
 		} else {
@@ -157,7 +168,33 @@ static struct {
 	avr_cycle_count_t quarter;      /* cycles between edges */
 	avr_cycle_count_t next;
 	int phase;
+	long long position;             /* quarter steps taken since start, signed */
+	int to_target;                  /* ENCPOS mode: stop stepping at target */
+	long long target;               /* ENCPOS mode: where position must get to */
 } enc[2];
+
+/* ENCPOS spreads the edges owed over the time since the previous one (the host's
+ * period), within these bounds. */
+#define TARGET_MIN_SPREAD_CYCLES (FREQUENCY / 200)  /* 5 ms */
+#define TARGET_MAX_SPREAD_CYCLES (FREQUENCY / 5)    /* 200 ms */
+static avr_cycle_count_t last_target_cycle;
+
+/* The encoders drive PD2-PD5 from outside, as a real encoder's outputs do. Told so
+ * (simavr's "external" pins), simavr keeps their levels when the firmware writes PORTD;
+ * else every write (digitalWrite of pin 7, a motor direction) re-applies the internal
+ * pull-ups the firmware enables on them, raising A and B to 1 until the next step:
+ * false edges (the firmware counted 5-8 % short with DRIVE frames at 30 Hz). */
+#define ENCODER_PINS_D 0x3C
+
+static void drive_encoder_pins(avr_t *avr) {
+	avr_ioport_external_t levels = {
+		.name = 'D',
+		.mask = ENCODER_PINS_D,
+		.value = (QUAD_A[enc[0].phase] << 2) | (QUAD_A[enc[1].phase] << 3) |
+			 (QUAD_B[enc[0].phase] << 4) | (QUAD_B[enc[1].phase] << 5),
+	};
+	avr_ioctl(avr, AVR_IOCTL_IOPORT_SET_EXTERNAL('D'), &levels);
+}
 
 static void setup_encoders(avr_t *avr) {
 	uint32_t port_d = AVR_IOCTL_IOPORT_GETIRQ('D');
@@ -165,11 +202,17 @@ static void setup_encoders(avr_t *avr) {
 	enc[0].pin_b = avr_io_getirq(avr, port_d, 4);
 	enc[1].pin_a = avr_io_getirq(avr, port_d, 3);
 	enc[1].pin_b = avr_io_getirq(avr, port_d, 5);
+	/* Start with A and B high, where the firmware's pull-ups held them before: simavr
+	 * polls an external-interrupt pin every cycle while it is low (a level-triggered
+	 * check it runs whatever the mode), which slowed the idle board to 0.74x real time. */
+	enc[0].phase = enc[1].phase = 2;
+	drive_encoder_pins(avr);
 }
 
 static void update_encoder_rates(avr_t *avr) {
 	for (int i = 0; i < 2; i++) {
 		int hz = atomic_load(&enc_hz[i]);
+		enc[i].to_target = 0;
 		enc[i].step = hz > 0 ? 1 : hz < 0 ? -1 : 0;
 		if (hz) {
 			enc[i].quarter = FREQUENCY / (4u * (unsigned)abs(hz));
@@ -180,14 +223,47 @@ static void update_encoder_rates(avr_t *avr) {
 	}
 }
 
+/* A rate ("ENC") drops the quarter step under way at each change, and a host that
+ * computes it over its nominal period miscounts when it wakes late: the count drifts
+ * from the plant's. A target ("ENCPOS") owes exact edges, whenever it arrives. */
+static void update_encoder_targets(avr_t *avr) {
+	avr_cycle_count_t spread = avr->cycle - last_target_cycle;
+	if (spread < TARGET_MIN_SPREAD_CYCLES)
+		spread = TARGET_MIN_SPREAD_CYCLES;
+	if (spread > TARGET_MAX_SPREAD_CYCLES)
+		spread = TARGET_MAX_SPREAD_CYCLES;
+	last_target_cycle = avr->cycle;
+	for (int i = 0; i < 2; i++) {
+		/* One count per cycle of channel A: four quarter steps. */
+		long long target = 4 * atomic_load(&enc_target[i]);
+		long long owed = target - enc[i].position;
+		int was_stepping = enc[i].step != 0;
+		enc[i].to_target = 1;
+		enc[i].target = target;
+		enc[i].step = owed > 0 ? 1 : owed < 0 ? -1 : 0;
+		if (!owed)
+			continue;
+		unsigned long long steps = (unsigned long long)(owed > 0 ? owed : -owed);
+		enc[i].quarter = spread / steps;
+		if (enc[i].quarter == 0)
+			enc[i].quarter = 1;
+		if (!was_stepping || enc[i].next > avr->cycle + enc[i].quarter)
+			enc[i].next = avr->cycle + enc[i].quarter;
+	}
+}
+
 static void poll_encoders(avr_t *avr) {
 	for (int i = 0; i < 2; i++) {
 		if (!enc[i].step || avr->cycle < enc[i].next)
 			continue;
 		enc[i].phase = (enc[i].phase + enc[i].step) & 3;
+		enc[i].position += enc[i].step;
+		drive_encoder_pins(avr);
 		avr_raise_irq(enc[i].pin_b, QUAD_B[enc[i].phase]);
 		avr_raise_irq(enc[i].pin_a, QUAD_A[enc[i].phase]);
 		enc[i].next += enc[i].quarter;
+		if (enc[i].to_target && enc[i].position == enc[i].target)
+			enc[i].step = 0;
 	}
 }
 
@@ -272,7 +348,8 @@ int main(int argc, char **argv) {
 
 	uint64_t wall0 = now_ns();
 	avr_cycle_count_t cycle0 = avr->cycle, next_check = avr->cycle + PACE_CHECK_CYCLES;
-	int generation = 0, status = 0;
+	int generation = 0, targets = 0, status = 0;
+	last_target_cycle = avr->cycle;
 	while (!atomic_load(&quit_requested)) {
 		int state = avr_run(avr);
 		if (state == cpu_Done || state == cpu_Crashed) {
@@ -289,6 +366,11 @@ int main(int argc, char **argv) {
 		if (g != generation) {
 			generation = g;
 			update_encoder_rates(avr);
+		}
+		int t = atomic_load(&target_generation);
+		if (t != targets) {
+			targets = t;
+			update_encoder_targets(avr);
 		}
 		if (!pace)
 			continue;
