@@ -50,7 +50,10 @@ class SimavrUno:
     ----------
     plant : optional `MotorPlant` that receives every motor change the harness reports
         (the simulated robot's wheels); its encoder counts are fed back to the firmware
-        as quadrature pulses, caught up every ``encoder_period_s``
+        as quadrature pulses, caught up every ``encoder_period_s`` (as often as the
+        simulated Uno's process is fed: the harness spreads each catch-up over the
+        period, so the firmware's counts trail the wheels by up to two periods, which the
+        host's odometry takes for when the wheels turned)
     build : run ``make -C firmware`` first (a no-op when up to date)
     """
 
@@ -59,7 +62,7 @@ class SimavrUno:
         plant: MotorPlant | None = None,
         *,
         build: bool = True,
-        encoder_period_s: float = 0.05,
+        encoder_period_s: float = 0.02,
     ) -> None:
         self.plant = plant
         self.build = build
