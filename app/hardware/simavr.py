@@ -51,9 +51,8 @@ class SimavrUno:
     plant : optional `MotorPlant` that receives every motor change the harness reports
         (the simulated robot's wheels); its encoder counts are fed back to the firmware
         as quadrature pulses, caught up every ``encoder_period_s`` (as often as the
-        simulated Uno's process is fed: the harness spreads each catch-up over the
-        period, so the firmware's counts trail the wheels by up to two periods, which the
-        host's odometry takes for when the wheels turned)
+        simulated Uno's process is fed; the harness spreads each catch-up over a period,
+        so the firmware's counts trail the wheels by at most about two periods)
     build : run ``make -C firmware`` first (a no-op when up to date)
     """
 

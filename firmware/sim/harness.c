@@ -177,6 +177,10 @@ static struct {
  * period), within these bounds. */
 #define TARGET_MIN_SPREAD_CYCLES (FREQUENCY / 200)  /* 5 ms */
 #define TARGET_MAX_SPREAD_CYCLES (FREQUENCY / 5)    /* 200 ms */
+/* ...and no faster than 20 000 quarter steps (5 000 counts) a second, ten times a
+ * fast wheel's rate, so a catch-up after a long host stall stays countable by the
+ * firmware's interrupts; the next ENCPOS takes up what is still owed. */
+#define TARGET_MIN_QUARTER_CYCLES (FREQUENCY / 20000)
 static avr_cycle_count_t last_target_cycle;
 
 /* The encoders drive PD2-PD5 from outside, as a real encoder's outputs do. Told so
@@ -245,8 +249,8 @@ static void update_encoder_targets(avr_t *avr) {
 			continue;
 		unsigned long long steps = (unsigned long long)(owed > 0 ? owed : -owed);
 		enc[i].quarter = spread / steps;
-		if (enc[i].quarter == 0)
-			enc[i].quarter = 1;
+		if (enc[i].quarter < TARGET_MIN_QUARTER_CYCLES)
+			enc[i].quarter = TARGET_MIN_QUARTER_CYCLES;
 		if (!was_stepping || enc[i].next > avr->cycle + enc[i].quarter)
 			enc[i].next = avr->cycle + enc[i].quarter;
 	}
