@@ -4,6 +4,7 @@ from __future__ import annotations
 
 import asyncio
 import json
+import random
 
 import pytest
 
@@ -51,8 +52,6 @@ async def test_the_firmware_counts_every_tick_the_wheels_made_while_commands_arr
     were 5-8 % short while simavr's pull-ups made false edges on every PORTD write, and
     a few counts off while the firmware counted only A's rising edges (each reversal
     between two of them gained one)."""
-    import random
-
     from app.hardware.serial_link import UnoLink
     from app.hardware.simavr import SimavrUno
     from app.sim.sim_uno import IntegratingPlant
