@@ -218,7 +218,9 @@ def main() -> int:
         "",
         "Written by `scripts/measure_perception.py` on "
         f"{datetime.date.today().isoformat()} on {cpu_name()} ({platform.machine()}); the raw"
-        " JSON of each command is in `docs/measurements/`.",
+        " JSON of each command is in `docs/measurements/`. A section re-run alone"
+        " (`--only NAME`) leaves the others as they were measured before (their JSON"
+        " files' last commits say when).",
         "",
     ]
     cv = [(n, results[n]) for n in ("cv-floornet", "cv") if n in results]
