@@ -7,6 +7,9 @@ import math
 import os
 import tempfile
 from pathlib import Path
+from typing import Any
+
+import numpy as np
 
 
 def write_bytes_atomic(path: Path, data: bytes) -> None:
@@ -33,14 +36,17 @@ def _umask() -> int:
     return mask
 
 
-def json_safe(value: object) -> object:
-    """Replace NaN and infinities (not valid JSON) with None, recursively."""
-    if isinstance(value, float) and not math.isfinite(value):
-        return None
+def json_safe(value: Any) -> Any:
+    """``value`` for strict JSON (browsers' JSON.parse, ``allow_nan=False``), recursively:
+    NaN and infinities become None, numpy scalars Python ones, tuples lists, keys str."""
     if isinstance(value, dict):
-        return {k: json_safe(v) for k, v in value.items()}
+        return {str(k): json_safe(v) for k, v in value.items()}
     if isinstance(value, list | tuple):
         return [json_safe(v) for v in value]
+    if isinstance(value, np.generic):
+        value = value.item()
+    if isinstance(value, float) and not math.isfinite(value):
+        return None
     return value
 
 

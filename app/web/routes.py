@@ -20,6 +20,7 @@ from prometheus_client import CONTENT_TYPE_LATEST, generate_latest
 from starlette.requests import ClientDisconnect
 
 from app.config import FloornavConfig
+from app.fileio import json_safe
 from app.mapping.calibration import (
     BoardPlacement,
     FloorCalibration,
@@ -36,7 +37,7 @@ from app.web.config_patch import (
     config_patch_model,
     patch_openapi,
 )
-from app.web.context import WebContext, json_safe
+from app.web.context import WebContext
 from app.web.schemas import (
     BOARD_PATTERN_REGEX,
     ERROR_RESPONSES,

@@ -49,9 +49,10 @@ from starlette.websockets import WebSocketDisconnect
 
 from app.channels import LatestSlot, SlotReader
 from app.control.teleop_limits import TeleopAngularSpeed, TeleopLinearSpeed
+from app.fileio import json_safe
 from app.runtime import CommandRefusedError
 from app.web.auth import offered_subprotocol, origin_allowed, token_matches, websocket_token
-from app.web.context import WebContext, json_safe
+from app.web.context import WebContext
 from app.web.service import RobotService
 from app.web.session import session_cookie_matches
 
