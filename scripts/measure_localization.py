@@ -301,7 +301,7 @@ def table(command: str, rows: list[dict[str, object]]) -> str:
         "at the odometry pose, corrected by nothing (wheels), by scan matching against the",
         "map (`[mapping] scan_matching`) or by the floor's motion between key frames",
         "(`[mapping] floor_odometry`, shipped on).",
-        "Open loop, so both variants see the same frames; the daemon's timing plays no part.",
+        "Open loop, so every variant sees the same frames; the daemon's timing plays no part.",
         "",
         f"Command: `{command}`",
         "",
