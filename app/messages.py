@@ -112,7 +112,9 @@ class WorldMapMsg:
 
     Attributes
     ----------
-    cells : classes (-1 unknown, 0 free, 1 occupied) of the whole world grid, read-only
+    cells : classes (-1 unknown, 0 free, 1 occupied) of the whole world grid as the robot
+        knows it (`OccupancyGrid.remembered_classes`: evidence that travel faded keeps
+        its last class; the robot has seen it and plans on it), read-only
     grid : the world grid's geometry (odometry frame)
     T_odom_robot : the robot's pose when the snapshot was taken
     path_xy, goal_xy, frontier_reason, frontier_clusters : the newest frontier search

@@ -384,13 +384,14 @@ def export_ros_map(pgm_path: Path, yaml_path: Path, snapshot: SavedMap) -> None:
     """Write ``snapshot`` as a ROS map_server map: the PGM, then the YAML naming it
     (relative to the YAML's folder), each atomically.
 
-    The cells are classified with the snapshot's thresholds (`SavedMap.classify`):
-    occupied -> 0, free -> 254, unknown -> 205; with ``negate: 0`` and the YAML's
+    The cells are the map as the robot knows it (`SavedMap.remembered_classes`: its
+    thresholds, faded cells at their last class, as the robot plans on them): occupied
+    -> 0, free -> 254, unknown -> 205; with ``negate: 0`` and the YAML's
     ``occupied_thresh: 0.65`` / ``free_thresh: 0.196`` map_server reads the same classes.
     """
     if not isinstance(snapshot, SavedMap):
         raise ValueError(f"snapshot: expected a SavedMap, got {type(snapshot).__name__}")
-    image = ros_image(snapshot.classify())
+    image = ros_image(snapshot.remembered_classes())
     pose = snapshot.T_world_robot
     comment = (
         f"floornav map; robot at x {pose.x_m:.3f} m, y {pose.y_m:.3f} m,"

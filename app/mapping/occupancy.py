@@ -862,6 +862,22 @@ def classify_log_odds(
     return out
 
 
+def fill_remembered(
+    classes: NDArray[np.int8], remembered: NDArray[np.int8] | None
+) -> NDArray[np.int8]:
+    """In place and returned: each ``UNKNOWN`` cell of ``classes`` that has a
+    ``remembered`` class (module docstring, 3) takes it; ``remembered`` None changes
+    nothing.
+
+    >>> fill_remembered(np.array([-1, -1, 0], np.int8), np.array([1, -1, -1], np.int8))
+    array([ 1, -1,  0], dtype=int8)
+    """
+    if remembered is not None:
+        faded = classes == UNKNOWN
+        classes[faded] = remembered[faded]
+    return classes
+
+
 def log_odds_to_probability(log_odds: NDArray[np.floating]) -> NDArray[np.float32]:
     """Occupancy probability ``1 / (1 + exp(-l))`` as float32 (0.5 = unknown)."""
     l32 = np.asarray(log_odds, dtype=np.float32)
@@ -957,6 +973,11 @@ class SavedMap:
             free_threshold=self.free_threshold,
             occupied_threshold=self.occupied_threshold,
         )
+
+    def remembered_classes(self) -> NDArray[np.int8]:
+        """`classify` with faded cells at their remembered class
+        (`OccupancyGrid.remembered_classes`); `classify` for a map saved without memory."""
+        return fill_remembered(self.classify(), self.remembered)
 
 
 class OccupancyGrid:
@@ -1104,10 +1125,7 @@ class OccupancyGrid:
     def remembered_classes(self) -> NDArray[np.int8]:
         """`classify`, with each cell that decay has made unknown given its last known
         class (`remembered`): the map to plan and explore on (module docstring, 3)."""
-        classes = self.classify()
-        faded = classes == UNKNOWN
-        classes[faded] = self.remembered[faded]
-        return classes
+        return fill_remembered(self.classify(), self.remembered)
 
     def probabilities(self) -> NDArray[np.float32]:
         """(rows, cols) float32 occupancy probabilities, 0.5 where unknown."""

@@ -150,16 +150,24 @@ def report(rt: Runtime) -> dict[str, Any]:
     sim = rt.devices.sim
     mapper = shared.mapper
     truth: dict[str, float] | None = None
+    truth_live: dict[str, float] | None = None
     reachable: float | None = None
     standing_near: float | None = None
     if sim is not None and mapper is not None and rt.devices.camera is sim.camera:
-        classes = mapper.grid.classify()
+        # Scored: the map as the robot knows it, the one it explores, goes home and
+        # saves on (faded evidence at its last class); `map_truth_live`: the evidence
+        # alone, as travel has faded it.
+        live = mapper.grid.classify()
+        classes = mapper.grid.remembered_classes()
         near = marks_near_truth(
             mapper.memory.standing != 0, mapper.grid.world_grid, sim.T_plan_odom, sim.world
         )
         standing_near = round(near, 4) if near is not None else None
         truth = map_truth_scores(
             classes, mapper.grid.world_grid, sim.T_plan_odom, sim.world
+        ).as_dict()
+        truth_live = map_truth_scores(
+            live, mapper.grid.world_grid, sim.T_plan_odom, sim.world
         ).as_dict()
         reachable = round(
             coverage_reachable(
@@ -196,6 +204,7 @@ def report(rt: Runtime) -> dict[str, Any]:
         "coverage_reachable": reachable,
         "map_iou": truth["map_iou"] if truth else None,
         "map_truth": truth,
+        "map_truth_live": truth_live,
         "pose_error_m": shared.pose_error.summary() if shared.pose_error is not None else None,
         "distance_m": round(shared.odometry.distance_m, 3),
         "home_distance_m": round(math.hypot(pose.x_m, pose.y_m), 3),

@@ -477,7 +477,9 @@ class MappingStage:
             world = mapper.grid.world_grid
             frontier = self.frontier
             goal, reason = self._goal_and_reason(frontier, self.home_goal)
-            whole = mapper.grid.classify()
+            # The map as the robot knows it: faded cells at their last class, as it
+            # plans on them (`OccupancyGrid.remembered_classes`).
+            whole = mapper.grid.remembered_classes()
             whole.setflags(write=False)
             snapshot = WorldMapMsg(
                 seq=floor.seq,

@@ -12,7 +12,7 @@ from typing import Any
 import numpy as np
 import pytest
 
-from app.mapping.frames import FLOOR, NOT_FLOOR, GroundGrid, Pose2D, same_geometry
+from app.mapping.frames import FLOOR, NOT_FLOOR, UNSEEN, GroundGrid, Pose2D, same_geometry
 from app.mapping.map_files import (
     FORMAT_VERSION,
     MAX_MAP_FILE_BYTES,
@@ -272,7 +272,7 @@ def test_ros_export_reads_back_as_the_grids_classification(
         "mode: trinary\n"
     )
     ros = read_ros_map(yaml)
-    classes = snapshot.classify()
+    classes = snapshot.remembered_classes()
     assert {FREE, OCCUPIED, UNKNOWN} <= set(np.unique(classes).tolist())
     np.testing.assert_array_equal(ros.cells, classes)
     assert same_geometry(ros.world_grid, WORLD)
@@ -280,6 +280,20 @@ def test_ros_export_reads_back_as_the_grids_classification(
     assert ros.image.shape == (40, 60)  # height spans y, width spans x
     assert set(np.unique(ros.image).tolist()) == {ROS_OCCUPIED, ROS_UNKNOWN, ROS_FREE}
     assert (ros.image == ROS_OCCUPIED).sum() == (classes == OCCUPIED).sum()
+
+
+def test_ros_export_keeps_the_floor_that_travel_faded(tmp_path: Path) -> None:
+    # The robot saw the floor and the wall, then drove 20 m: the evidence faded to
+    # unknown, and the exported map still shows what the robot explored.
+    grid = mapped_grid()
+    seen = grid.remembered_classes()
+    grid.update(np.full(PATCH.shape, UNSEEN, np.uint8), PATCH, Pose2D(0.3, 20.4, 0.7), (0.0, 0.0))
+    faded = grid.snapshot()
+    assert (faded.classify() == UNKNOWN).all()
+    export_ros_map(tmp_path / "m.pgm", tmp_path / "m.yaml", faded)
+    ros = read_ros_map(tmp_path / "m.yaml")
+    np.testing.assert_array_equal(ros.cells, seen)
+    assert (seen == FREE).sum() > 100 and (seen == OCCUPIED).sum() > 10
 
 
 def test_ros_export_puts_a_known_cell_at_the_right_pixel(tmp_path: Path) -> None:

@@ -17,7 +17,7 @@ import pytest
 from app.config import load_config
 from app.devices import open_devices
 from app.runtime import Runtime
-from app.sim.truth import marks_near_truth
+from app.sim.truth import map_truth_scores, marks_near_truth
 
 ROOT = Path(__file__).resolve().parents[2]
 
@@ -78,6 +78,16 @@ async def test_twenty_seconds_in_each_harder_world(world: str) -> None:
             float(seen.sum()) * mapper.grid.world_grid.cell_m**2, 2
         )
         assert not (seen & (mapper.memory.standing == 0)).any()
+        # Scored: the map the robot explores on (faded evidence at its last class);
+        # beside it, the evidence alone.
+        grid, T_plan_odom = mapper.grid.world_grid, devices.sim.T_plan_odom
+        known = map_truth_scores(
+            mapper.grid.remembered_classes(), grid, T_plan_odom, devices.sim.world
+        )
+        live = map_truth_scores(mapper.grid.classify(), grid, T_plan_odom, devices.sim.world)
+        assert report["map_truth"] == known.as_dict()
+        assert report["map_truth_live"] == live.as_dict()
+        assert known.coverage_ratio >= live.coverage_ratio
     print(
         f"\n20 s in {world}: reachable coverage {report['coverage_reachable']}, map IoU"
         f" {report['map_iou']}, {report['distance_m']} m, pose error {report['pose_error_m']},"
