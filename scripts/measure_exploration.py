@@ -102,15 +102,19 @@ def table(command: str) -> str:
         "ends at the first edge the robot cannot prove floor); *premise stops (map",
         "knew)*: stops because the safe zone was not floor, and in brackets the frames",
         "whose zone perception doubted but the map knew was floor; '-' for older",
-        "reports. *Build*: the commit each run measured.",
+        "reports. *Build*: the commit each run measured. The coverages and map scores",
+        "are of the map as the robot knows it (faded evidence at its last class, as it",
+        "plans and saves it); *coverage, evidence alone*: of the evidence that travel",
+        "has not faded (`map_truth_live`; '-' for reports before it).",
         "",
         f"Command: `{command}`",
         "",
-        "| build | world | seed | s | reachable coverage | coverage | time to 50 % / 90 % s | "
+        "| build | world | seed | s | reachable coverage | coverage | coverage, evidence alone | "
+        "time to 50 % / 90 % s | "
         "final state | home m | collisions | occupied near truth | standing near truth | "
         "probe-able edges | goals given up (whole frontiers) | premise stops (map knew) | "
         "map IoU | pose error p95 m | latency p95 ms |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for path in sorted(MEASUREMENTS.glob("explore-*.json")):
         r = json.loads(path.read_text())
@@ -128,6 +132,7 @@ def table(command: str) -> str:
                     f"{r['duration_s']:.0f}",
                     cell(r.get("coverage_reachable")),
                     cell(r.get("coverage_ratio")),
+                    cell((r.get("map_truth_live") or {}).get("coverage_ratio")),
                     f"{cell(ttc.get('50'), 0)} / {cell(ttc.get('90'), 0)}",
                     cell(r.get("final_state")),
                     cell((r.get("exploration") or {}).get("home_distance_m"), 2),

@@ -3,9 +3,10 @@
     .venv/bin/python scripts/render_map_truth.py MAP.npz --world NAME --out PNG
 
 Left: the world's truth (floor colour from the world's own floor texture, walls and
-boxes black). Right: the map (free white, occupied black, unknown grey) in the same plan
-frame, with the robot's start (green) and its last pose (red). The map is in the odom
-frame, which is the world's start pose (the simulator starts there).
+boxes black). Right: the map as the robot knows it (`SavedMap.remembered_classes`; free
+white, occupied black, unknown grey) in the same plan frame, with the robot's start (green)
+and its last pose (red). The map is in the odom frame, which is the world's start pose
+(the simulator starts there).
 """
 
 from __future__ import annotations
@@ -40,7 +41,7 @@ def render(map_path: Path, config_path: Path | None, world_name: str, out: Path)
     config = load_config(config_path if config_path else DEFAULT_CONFIG_PATH, **overrides)
     world = world_from_config(config)
     saved = load_map(map_path)
-    classes = saved.classify()
+    classes = saved.remembered_classes()
     truth_grid, truth_occ = world.occupancy(saved.world_grid.cell_m)
     x, y = truth_grid.cell_centers()
     plan_points = np.column_stack((x.ravel(), y.ravel()))
