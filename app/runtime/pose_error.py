@@ -15,6 +15,10 @@ SAMPLE_PERIOD_S = 0.1
 of samples stays small."""
 MAX_SAMPLES = 100_000
 """Nearly three hours at 10 Hz; older samples are dropped."""
+TRACK_PERIOD_S = 5.0
+"""The report's ``pose_error_track`` keeps one sample per this many seconds..."""
+TRACK_KEPT = 2000
+"""...the latest this many (nearly three hours): when and where the error grew."""
 
 
 class PoseErrorTracker:
@@ -26,7 +30,14 @@ class PoseErrorTracker:
         self.sim = sim
         self.period_s = period_s
         self.errors_m: deque[float] = deque(maxlen=MAX_SAMPLES)
+        self.heading_errors_rad: deque[float] = deque(maxlen=MAX_SAMPLES)
+        self.track: deque[tuple[float, float, float, float, float]] = deque(maxlen=TRACK_KEPT)
+        """(seconds since the first sample, true x and y in the plan frame (m), position
+        error (m), heading error (degrees, estimate minus truth)), every
+        `TRACK_PERIOD_S`."""
         self._due_s = -math.inf
+        self._first_s: float | None = None
+        self._track_due_s = -math.inf
 
     def sample(self, T_odom_robot: Pose2D, now_s: float) -> float | None:
         """Record the error of ``T_odom_robot`` against the robot's true pose now (at
@@ -37,7 +48,22 @@ class PoseErrorTracker:
         true = self.sim.robot.pose
         estimate = self.sim.T_plan_odom.compose(T_odom_robot)
         error = math.hypot(true.x_m - estimate.x_m, true.y_m - estimate.y_m)
+        heading = math.remainder(estimate.theta_rad - true.theta_rad, math.tau)
         self.errors_m.append(error)
+        self.heading_errors_rad.append(heading)
+        if self._first_s is None:
+            self._first_s = now_s
+        if now_s >= self._track_due_s:
+            self._track_due_s = now_s + TRACK_PERIOD_S
+            self.track.append(
+                (
+                    round(now_s - self._first_s, 1),
+                    round(true.x_m, 2),
+                    round(true.y_m, 2),
+                    round(error, 3),
+                    round(math.degrees(heading), 2),
+                )
+            )
         return error
 
     def summary(self) -> dict[str, float] | None:
@@ -50,3 +76,16 @@ class PoseErrorTracker:
             return round(ordered[min(len(ordered) - 1, round(q * (len(ordered) - 1)))], 3)
 
         return {"p50": pick(0.5), "p95": pick(0.95), "final": round(self.errors_m[-1], 3)}
+
+    def heading_summary_deg(self) -> dict[str, float] | None:
+        """The heading error's size in degrees: ``{"p50", "p95", "final"}``; None before a
+        sample. Heading is the costliest error: one degree moves a wall 3 m away by 5 cm."""
+        if not self.heading_errors_rad:
+            return None
+        ordered = sorted(abs(math.degrees(h)) for h in self.heading_errors_rad)
+
+        def pick(q: float) -> float:
+            return round(ordered[min(len(ordered) - 1, round(q * (len(ordered) - 1)))], 2)
+
+        final = abs(math.degrees(self.heading_errors_rad[-1]))
+        return {"p50": pick(0.5), "p95": pick(0.95), "final": round(final, 2)}

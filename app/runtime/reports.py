@@ -206,6 +206,12 @@ def report(rt: Runtime) -> dict[str, Any]:
         "map_truth": truth,
         "map_truth_live": truth_live,
         "pose_error_m": shared.pose_error.summary() if shared.pose_error is not None else None,
+        "heading_error_deg": shared.pose_error.heading_summary_deg()
+        if shared.pose_error is not None
+        else None,
+        "pose_error_track": [list(row) for row in shared.pose_error.track]
+        if shared.pose_error is not None
+        else None,
         "distance_m": round(shared.odometry.distance_m, 3),
         "home_distance_m": round(math.hypot(pose.x_m, pose.y_m), 3),
         "exploration": exploration_status(rt),

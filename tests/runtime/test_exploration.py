@@ -101,3 +101,7 @@ async def test_twenty_seconds_in_each_harder_world(world: str) -> None:
     assert report["exploration"]["phase"] in {"exploring", "returning", "explored"}
     assert set(report["time_to_coverage_s"]) == {"50", "90"}
     assert set(report["pose_error_m"]) == {"p50", "p95", "final"}
+    assert set(report["heading_error_deg"]) == {"p50", "p95", "final"}
+    # One row per 5 s: seconds, true x and y, position and heading errors.
+    assert 3 <= len(report["pose_error_track"]) <= 5
+    assert all(len(row) == 5 for row in report["pose_error_track"])
