@@ -113,8 +113,8 @@ def table(command: str) -> str:
         "time to 50 % / 90 % s | "
         "final state | home m | collisions | occupied near truth | standing near truth | "
         "probe-able edges | goals given up (whole frontiers) | premise stops (map knew) | "
-        "map IoU | pose error p95 m | latency p95 ms |",
-        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
+        "map IoU | pose error p95 m | heading error p95 deg | latency p95 ms |",
+        "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|",
     ]
     for path in sorted(MEASUREMENTS.glob("explore-*.json")):
         r = json.loads(path.read_text())
@@ -145,6 +145,7 @@ def table(command: str) -> str:
                     f"{cell(r.get('premise_stops'))} ({cell(r.get('zone_known_floor_frames'))})",
                     cell(truth.get("map_iou")),
                     cell(pose.get("p95")),
+                    cell((r.get("heading_error_deg") or {}).get("p95"), 2),
                     cell((r.get("latency_ms") or {}).get("p95"), 1),
                 ]
             )
