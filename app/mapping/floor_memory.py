@@ -154,10 +154,15 @@ class FloorMemoryState:
     ----------
     confirmed : (rows, cols) uint8, 1 = confirmed flat floor
     appearances : (k, 4) float32, scaled-Lab colour and cell count of each appearance
+    standing_marks, seen_foot_marks : (rows, cols) uint8, `FloorMemory.standing_marks`
+        and `FloorMemory.seen_foot_marks` (the standing layer follows from them); None
+        for a map saved without them
     """
 
     confirmed: NDArray[np.uint8]
     appearances: NDArray[np.float32]
+    standing_marks: NDArray[np.uint8] | None = None
+    seen_foot_marks: NDArray[np.uint8] | None = None
 
 
 class FloorMemory:
@@ -172,7 +177,7 @@ class FloorMemory:
         self.standing = np.zeros(world_grid.shape, dtype=np.uint8)
         """1 where geometry saw something standing, in at least
         `FloorMemoryParams.standing_min_marks` more tests than saw floor there (not kept
-        in map files): not known floor, and where its feet were seen there
+        from its marks in map files): not known floor, and where its feet were seen there
         (`standing_seen`), an edge the frontier search does not probe."""
         self.standing_marks = np.zeros(world_grid.shape, dtype=np.uint8)
         """Tests that marked the cell standing, less those that saw floor there."""
@@ -395,29 +400,44 @@ class FloorMemory:
 
     def state(self) -> FloorMemoryState:
         table = np.column_stack([self._appearance_lab, self._appearance_cells]).astype(np.float32)
-        return FloorMemoryState(self.confirmed.copy(), table.reshape(-1, 4))
+        return FloorMemoryState(
+            self.confirmed.copy(),
+            table.reshape(-1, 4),
+            self.standing_marks.copy(),
+            self.seen_foot_marks.copy(),
+        )
 
     def restore(self, state: FloorMemoryState) -> None:
-        """Continue from a saved map's memory (the colour layer starts empty).
+        """Continue from a saved map's memory (the colour layer starts empty; without
+        saved marks, so does the standing layer).
 
         Raises
         ------
-        ValueError : a confirmed layer of another shape or a malformed appearance table
+        ValueError : a layer of another shape or a malformed appearance table
         """
-        if state.confirmed.shape != self.world_grid.shape:
-            raise ValueError(
-                f"confirmed floor layer: shape {state.confirmed.shape}, grid is"
-                f" {self.world_grid.shape}"
-            )
+        layers = {
+            "confirmed floor": state.confirmed,
+            "standing marks": state.standing_marks,
+            "seen foot marks": state.seen_foot_marks,
+        }
+        for name, layer in layers.items():
+            if layer is not None and layer.shape != self.world_grid.shape:
+                raise ValueError(
+                    f"{name} layer: shape {layer.shape}, grid is {self.world_grid.shape}"
+                )
         table = np.asarray(state.appearances, dtype=np.float32)
         if table.ndim != 2 or table.shape[1] != 4 or not np.isfinite(table).all():
             raise ValueError(f"floor appearances: expected finite (k, 4), got {table.shape}")
         if (table[:, 3] <= 0).any():
             raise ValueError("floor appearances: every cell count must be > 0")
         self.confirmed[...] = state.confirmed != 0
-        self.standing.fill(0)
-        self.standing_marks.fill(0)
-        self.seen_foot_marks.fill(0)
+        top = self.params.standing_max_marks
+        for saved, layer in (
+            (state.standing_marks, self.standing_marks),
+            (state.seen_foot_marks, self.seen_foot_marks),
+        ):
+            layer[...] = 0 if saved is None else np.minimum(saved, top)
+        self.standing[...] = self.standing_marks >= self.params.standing_min_marks
         self._appearance_lab = table[:, :3].copy()
         self._appearance_cells = table[:, 3].astype(np.float64)
         self._colour.fill(0.0)

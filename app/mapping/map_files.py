@@ -19,6 +19,11 @@ crash never leaves half a map). It holds a `SavedMap`:
                        parallax (`app.mapping.floor_memory`)
 ``floor_appearances``  optional (k, 4) float32, learned floor colours (scaled CIELAB)
                        and the cells behind each; both or neither
+``standing_marks``     optional (rows, cols) uint8, geometric tests that saw something
+                       standing on each cell, net of those that saw floor there
+``seen_foot_marks``    optional (rows, cols) uint8, of those, the ones that saw its
+                       foot there (`app.mapping.floor_memory`); both or neither, and
+                       only beside ``confirmed_floor``
 ``remembered``         optional (rows, cols) int8, each cell's last known class
                        before decay faded it (`OccupancyGrid.remembered`: -1 never
                        known, 0 free, 1 occupied); absent: what the map knows now
@@ -31,9 +36,10 @@ The ROS export (`export_ros_map`) is what ``map_server`` / ``nav2_map_server`` l
 binary PGM (P5, 8 bits; occupied 0, free 254, unknown 205, as ``map_saver`` writes) and
 a YAML description. ROS maps have x to the right and y up with the image's bottom-left
 pixel at ``origin``, so image row 0 holds the largest y and image column 0 the smallest
-x; the cells are classified with the map's own thresholds, so the image shows what the
-daemon calls free and occupied. `read_ros_map` reads such a pair back (a small reader
-for this flat YAML: PyYAML is not a dependency).
+x; the cells are the map as the daemon knows and plans on it (its own thresholds, faded
+evidence at its last class), so the image shows what the daemon calls free and
+occupied. `read_ros_map` reads such a pair back (a small reader for this flat YAML:
+PyYAML is not a dependency).
 """
 
 from __future__ import annotations
@@ -104,6 +110,19 @@ def map_arrays(snapshot: SavedMap) -> dict[str, NDArray[np.generic]]:
                 "confirmed_floor": np.asarray(snapshot.floor_memory.confirmed, dtype=np.uint8),
                 "floor_appearances": np.asarray(
                     snapshot.floor_memory.appearances, dtype=np.float32
+                ),
+                **(
+                    {}
+                    if snapshot.floor_memory.standing_marks is None
+                    or snapshot.floor_memory.seen_foot_marks is None
+                    else {
+                        "standing_marks": np.asarray(
+                            snapshot.floor_memory.standing_marks, dtype=np.uint8
+                        ),
+                        "seen_foot_marks": np.asarray(
+                            snapshot.floor_memory.seen_foot_marks, dtype=np.uint8
+                        ),
+                    }
                 ),
             }
         ),
@@ -304,8 +323,22 @@ def _read_floor_memory(
             f"{path}: 'floor_appearances' must be finite float32 (k, 4) with cell counts"
             f" > 0, got {table.dtype} {table.shape}"
         )
+    marks: list[NDArray[np.uint8]] = []
+    mark_names = [n for n in ("standing_marks", "seen_foot_marks") if f"{n}.npy" in names]
+    if len(mark_names) == 1:
+        raise MapFileError(f"{path}: {mark_names[0]!r} without its partner array")
+    for name in mark_names:
+        layer = read(name)
+        if layer.dtype != np.uint8 or layer.shape != grid.shape:
+            raise MapFileError(
+                f"{path}: {name!r} must be uint8 of shape {grid.shape}, got"
+                f" {layer.dtype} {layer.shape}"
+            )
+        marks.append(np.asarray(layer, dtype=np.uint8))
     return FloorMemoryState(
-        np.asarray(confirmed, dtype=np.uint8), np.asarray(table, dtype=np.float32)
+        np.asarray(confirmed, dtype=np.uint8),
+        np.asarray(table, dtype=np.float32),
+        *(marks if marks else [None, None]),
     )
 
 

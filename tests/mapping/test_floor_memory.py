@@ -184,6 +184,55 @@ def test_the_memory_is_saved_with_the_map(tmp_path: Path) -> None:
     assert again.appearances() == memory.appearances()
 
 
+def test_what_stands_is_saved_with_the_map_and_a_map_without_it_still_loads(
+    tmp_path: Path,
+) -> None:
+    # A wall's foot seen in two tests, and a foot placed once where a frame's floor ended.
+    grid = OccupancyGrid(WORLD)
+    memory = FloorMemory(WORLD)
+    wall, once = np.array([5, 6, 7], np.int64), np.array([40], np.int64)
+    for _ in range(2):
+        memory.mark_standing(wall)
+    memory.mark_standing(once, seen_cells=np.zeros(0, np.int64))
+    assert memory.standing.reshape(-1)[[5, 6, 7, 40]].tolist() == [1, 1, 1, 0]
+    from dataclasses import replace
+
+    save_map(tmp_path / "m.npz", replace(grid.snapshot(), floor_memory=memory.state()))
+    loaded = load_map(tmp_path / "m.npz").floor_memory
+    assert loaded is not None
+    again = FloorMemory(WORLD)
+    again.restore(loaded)
+    for layer in ("standing", "standing_marks", "seen_foot_marks"):
+        np.testing.assert_array_equal(getattr(again, layer), getattr(memory, layer))
+    np.testing.assert_array_equal(again.standing_seen(), memory.standing_seen())
+    # One more test seeing floor there takes the wall out, as it would have before.
+    again.see_floor(wall)
+    memory.see_floor(wall)
+    np.testing.assert_array_equal(again.standing, memory.standing)
+
+    # A map from before the marks were saved loads with no standing layer; half the
+    # pair is refused.
+    from app.mapping.map_files import map_arrays
+
+    arrays = map_arrays(replace(grid.snapshot(), floor_memory=memory.state()))
+    del arrays["standing_marks"], arrays["seen_foot_marks"]
+    np.savez(tmp_path / "old.npz", **arrays)  # type: ignore[arg-type]
+    old = load_map(tmp_path / "old.npz").floor_memory
+    assert old is not None and old.standing_marks is None
+    again.restore(old)
+    assert not again.standing.any() and not again.standing_marks.any()
+    arrays = map_arrays(replace(grid.snapshot(), floor_memory=memory.state()))
+    del arrays["seen_foot_marks"]
+    np.savez(tmp_path / "half.npz", **arrays)  # type: ignore[arg-type]
+    with pytest.raises(MapFileError, match="'standing_marks' without its partner"):
+        load_map(tmp_path / "half.npz")
+    arrays = map_arrays(replace(grid.snapshot(), floor_memory=memory.state()))
+    arrays["seen_foot_marks"] = arrays["seen_foot_marks"].astype(np.int16)
+    np.savez(tmp_path / "bad.npz", **arrays)  # type: ignore[arg-type]
+    with pytest.raises(MapFileError, match="'seen_foot_marks' must be uint8"):
+        load_map(tmp_path / "bad.npz")
+
+
 def test_a_map_with_half_a_memory_is_refused(tmp_path: Path) -> None:
     from app.mapping.map_files import map_arrays
 
