@@ -91,7 +91,7 @@ def map_arrays(snapshot: SavedMap) -> dict[str, NDArray[np.generic]]:
     """The arrays of a map file (see the module docstring)."""
     grid = snapshot.world_grid
     pose = snapshot.T_world_robot
-    return {
+    arrays: dict[str, NDArray[np.generic]] = {
         "kind": np.array(MAP_KIND),
         "version": np.array(FORMAT_VERSION, dtype=np.int64),
         "log_odds": np.asarray(snapshot.log_odds, dtype=np.float32),
@@ -103,35 +103,17 @@ def map_arrays(snapshot: SavedMap) -> dict[str, NDArray[np.generic]]:
         ),
         "pose": np.array([pose.x_m, pose.y_m, pose.theta_rad], dtype=np.float64),
         "travelled_m": np.array(snapshot.travelled_m, dtype=np.float64),
-        **(
-            {}
-            if snapshot.floor_memory is None
-            else {
-                "confirmed_floor": np.asarray(snapshot.floor_memory.confirmed, dtype=np.uint8),
-                "floor_appearances": np.asarray(
-                    snapshot.floor_memory.appearances, dtype=np.float32
-                ),
-                **(
-                    {}
-                    if snapshot.floor_memory.standing_marks is None
-                    or snapshot.floor_memory.seen_foot_marks is None
-                    else {
-                        "standing_marks": np.asarray(
-                            snapshot.floor_memory.standing_marks, dtype=np.uint8
-                        ),
-                        "seen_foot_marks": np.asarray(
-                            snapshot.floor_memory.seen_foot_marks, dtype=np.uint8
-                        ),
-                    }
-                ),
-            }
-        ),
-        **(
-            {}
-            if snapshot.remembered is None
-            else {"remembered": np.asarray(snapshot.remembered, dtype=np.int8)}
-        ),
     }
+    memory = snapshot.floor_memory
+    if memory is not None:
+        arrays["confirmed_floor"] = np.asarray(memory.confirmed, dtype=np.uint8)
+        arrays["floor_appearances"] = np.asarray(memory.appearances, dtype=np.float32)
+        if memory.standing_marks is not None and memory.seen_foot_marks is not None:
+            arrays["standing_marks"] = np.asarray(memory.standing_marks, dtype=np.uint8)
+            arrays["seen_foot_marks"] = np.asarray(memory.seen_foot_marks, dtype=np.uint8)
+    if snapshot.remembered is not None:
+        arrays["remembered"] = np.asarray(snapshot.remembered, dtype=np.int8)
+    return arrays
 
 
 def save_map(path: Path, snapshot: SavedMap) -> None:

@@ -6,6 +6,7 @@ from __future__ import annotations
 
 import math
 from collections import deque
+from collections.abc import Sequence
 
 from app.devices import SimHandles
 from app.mapping.frames import Pose2D
@@ -68,24 +69,21 @@ class PoseErrorTracker:
 
     def summary(self) -> dict[str, float] | None:
         """``{"p50": m, "p95": m, "final": m}`` to the millimetre; None before a sample."""
-        if not self.errors_m:
-            return None
-        ordered = sorted(self.errors_m)
-
-        def pick(q: float) -> float:
-            return round(ordered[min(len(ordered) - 1, round(q * (len(ordered) - 1)))], 3)
-
-        return {"p50": pick(0.5), "p95": pick(0.95), "final": round(self.errors_m[-1], 3)}
+        return _summary(self.errors_m, 3)
 
     def heading_summary_deg(self) -> dict[str, float] | None:
         """The heading error's size in degrees: ``{"p50", "p95", "final"}``; None before a
         sample. Heading is the costliest error: one degree moves a wall 3 m away by 5 cm."""
-        if not self.heading_errors_rad:
-            return None
-        ordered = sorted(abs(math.degrees(h)) for h in self.heading_errors_rad)
+        return _summary([abs(math.degrees(h)) for h in self.heading_errors_rad], 2)
 
-        def pick(q: float) -> float:
-            return round(ordered[min(len(ordered) - 1, round(q * (len(ordered) - 1)))], 2)
 
-        final = abs(math.degrees(self.heading_errors_rad[-1]))
-        return {"p50": pick(0.5), "p95": pick(0.95), "final": round(final, 2)}
+def _summary(values: Sequence[float], digits: int) -> dict[str, float] | None:
+    """``{"p50", "p95", "final"}`` of ``values`` (oldest first), rounded; None if empty."""
+    if not values:
+        return None
+    ordered = sorted(values)
+
+    def pick(q: float) -> float:
+        return round(ordered[min(len(ordered) - 1, round(q * (len(ordered) - 1)))], digits)
+
+    return {"p50": pick(0.5), "p95": pick(0.95), "final": round(values[-1], digits)}

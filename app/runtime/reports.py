@@ -11,6 +11,7 @@ from typing import TYPE_CHECKING, Any
 
 import numpy as np
 
+from app.mapping.occupancy import fill_remembered
 from app.runtime.service_status import service_status
 from app.runtime.telemetry import newest, percentiles_ms
 
@@ -158,7 +159,7 @@ def report(rt: Runtime) -> dict[str, Any]:
         # saves on (faded evidence at its last class); `map_truth_live`: the evidence
         # alone, as travel has faded it.
         live = mapper.grid.classify()
-        classes = mapper.grid.remembered_classes()
+        classes = fill_remembered(live.copy(), mapper.grid.remembered)
         near = marks_near_truth(
             mapper.memory.standing != 0, mapper.grid.world_grid, sim.T_plan_odom, sim.world
         )
