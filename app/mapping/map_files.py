@@ -276,17 +276,9 @@ def _read_floor_memory(
     grid: GroundGrid,
 ) -> FloorMemoryState | None:
     names = set(archive.namelist())
-    present = [n for n in ("confirmed_floor", "floor_appearances") if f"{n}.npy" in names]
-    if not present:
+    if not _pair_present(names, path, "confirmed_floor", "floor_appearances"):
         return None  # a map saved before the floor memory existed
-    if len(present) == 1:
-        raise MapFileError(f"{path}: {present[0]!r} without its partner array")
-    confirmed = read("confirmed_floor")
-    if confirmed.dtype != np.uint8 or confirmed.shape != grid.shape:
-        raise MapFileError(
-            f"{path}: 'confirmed_floor' must be uint8 of shape {grid.shape}, got"
-            f" {confirmed.dtype} {confirmed.shape}"
-        )
+    confirmed = _uint8_layer(read, path, "confirmed_floor", grid)
     table = np.asarray(read("floor_appearances"))
     counts = (
         np.asarray(table[:, 3], dtype=np.float64)
@@ -305,23 +297,34 @@ def _read_floor_memory(
             f"{path}: 'floor_appearances' must be finite float32 (k, 4) with cell counts"
             f" > 0, got {table.dtype} {table.shape}"
         )
-    marks: list[NDArray[np.uint8]] = []
-    mark_names = [n for n in ("standing_marks", "seen_foot_marks") if f"{n}.npy" in names]
-    if len(mark_names) == 1:
-        raise MapFileError(f"{path}: {mark_names[0]!r} without its partner array")
-    for name in mark_names:
-        layer = read(name)
-        if layer.dtype != np.uint8 or layer.shape != grid.shape:
-            raise MapFileError(
-                f"{path}: {name!r} must be uint8 of shape {grid.shape}, got"
-                f" {layer.dtype} {layer.shape}"
-            )
-        marks.append(np.asarray(layer, dtype=np.uint8))
-    return FloorMemoryState(
-        np.asarray(confirmed, dtype=np.uint8),
-        np.asarray(table, dtype=np.float32),
-        *(marks if marks else [None, None]),
-    )
+    marks: tuple[NDArray[np.uint8] | None, NDArray[np.uint8] | None] = (None, None)
+    if _pair_present(names, path, "standing_marks", "seen_foot_marks"):
+        marks = (
+            _uint8_layer(read, path, "standing_marks", grid),
+            _uint8_layer(read, path, "seen_foot_marks", grid),
+        )
+    return FloorMemoryState(confirmed, np.asarray(table, dtype=np.float32), *marks)
+
+
+def _pair_present(names: set[str], path: Path, first: str, second: str) -> bool:
+    """Whether the archive holds both arrays of a pair (neither: False); one alone is
+    refused."""
+    present = [n for n in (first, second) if f"{n}.npy" in names]
+    if len(present) == 1:
+        raise MapFileError(f"{path}: {present[0]!r} without its partner array")
+    return bool(present)
+
+
+def _uint8_layer(
+    read: Callable[[str], NDArray[np.generic]], path: Path, name: str, grid: GroundGrid
+) -> NDArray[np.uint8]:
+    """A (rows, cols) uint8 layer of the map file, checked."""
+    layer = read(name)
+    if layer.dtype != np.uint8 or layer.shape != grid.shape:
+        raise MapFileError(
+            f"{path}: {name!r} must be uint8 of shape {grid.shape}, got {layer.dtype} {layer.shape}"
+        )
+    return np.asarray(layer, dtype=np.uint8)
 
 
 # ------------------------------------------------------------------ ROS map_server
