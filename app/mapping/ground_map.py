@@ -387,7 +387,7 @@ real edge: not probed (`FloorMemory.standing_seen`). A foot placed where a frame
 ended, below not-floor the tests could not judge (a threshold, the tiles past it), does
 not stop a probe: the look from close up tells a wall's lower part from another floor."""
 PROBE_GIVEN_UP_RADIUS_M = 0.8
-"""Edges within this of a given-up goal are not probed again (`GroundMapper.frontiers`):
+"""Edges within this of a given-up edge probe are not probed again (`GroundMapper.frontiers`):
 the probe stood within the inflation radius plus two cells of its edge, and an edge
 seen from there for the goal's patience has had its look."""
 PROBE_OPENED_SHARE = 0.5
@@ -427,7 +427,10 @@ class GivenUpGoals:
         self.no_frontier = np.zeros(grid.shape, dtype=bool)
         """Cells within `GIVEN_UP_RADIUS_M` of a given-up goal or cluster: no frontier."""
         self.no_probe = np.zeros(grid.shape, dtype=bool)
-        """Cells within `PROBE_GIVEN_UP_RADIUS_M` of one: their edges are not probed."""
+        """Cells within `PROBE_GIVEN_UP_RADIUS_M` of an edge probe given up: their edges
+        are not probed again. A frontier goal that ran out of patience stamps nothing
+        here: the frontier it aimed at (the unknown past a doorway) is often behind an
+        edge no probe has looked at yet, and that look is what comes next."""
         self.failed = np.zeros(grid.shape, dtype=bool)
         """Cells within `PROBE_GIVEN_UP_RADIUS_M` of a frontier goal that ran out of
         patience (edge probes that had their look are not failures)."""
@@ -438,20 +441,21 @@ class GivenUpGoals:
         """Give up the goal at ``xy``. ``cluster_cells`` ((n, 2) row, col), for a frontier
         goal that ran out of patience: its cluster's cells. When one of them already lies
         near an earlier failure, the cluster is given up whole (its cells and what lies
-        within the radii of them). Returns whether it was."""
+        within the radius of them). Without them ``xy`` is an edge probe given up: the
+        edges near it are not probed again. Returns whether a cluster was given up whole."""
         whole = False
-        if cluster_cells is not None:
+        if cluster_cells is None:
+            stamp_disk(self.no_probe, self.grid, xy, PROBE_GIVEN_UP_RADIUS_M)
+        else:
             cluster = self._mask(cluster_cells)
             whole = bool((self.failed & cluster).any())
             stamp_disk(self.failed, self.grid, xy, PROBE_GIVEN_UP_RADIUS_M)
             if whole:
                 cell_m = self.grid.cell_m
                 self.no_frontier |= inflate_obstacles(cluster, GIVEN_UP_RADIUS_M / cell_m)
-                self.no_probe |= inflate_obstacles(cluster, PROBE_GIVEN_UP_RADIUS_M / cell_m)
                 self.clusters += 1
         self.points.append(xy)
         stamp_disk(self.no_frontier, self.grid, xy, GIVEN_UP_RADIUS_M)
-        stamp_disk(self.no_probe, self.grid, xy, PROBE_GIVEN_UP_RADIUS_M)
         return whole
 
     def looked_at(self, edge_cells: NDArray[np.int64]) -> None:

@@ -76,8 +76,23 @@ def test_a_second_failure_on_one_frontier_gives_up_the_whole_frontier() -> None:
     rows, cols = np.indices(GRID.shape)
     distance2 = np.min([(rows - 10) ** 2 + (cols - c) ** 2 for c in range(2, 28)], axis=0)
     assert np.array_equal(given_up.no_frontier, distance2 <= 16)
-    assert given_up.no_probe[10 + 7, 27] and not given_up.no_probe[10 + 9, 27]
+    # Frontier goals keep no edge from a probe: the look at it is what comes next.
+    assert not given_up.no_probe.any()
     assert len(given_up) == 2
+
+
+def test_a_frontier_goal_given_up_at_a_doorway_leaves_its_edge_to_a_probe() -> None:
+    """The home's runs: the frontier past a doorway (seen through it, never from it) ran
+    out of patience, its 0.8 m disk kept the threshold's edge from every probe, and the
+    run ended `explored` in the first room. Only a probe given up keeps edges from one."""
+    given_up = GivenUpGoals(GRID)
+    doorway = cluster_along_row(12, range(12, 18))
+    given_up.add(centre(12, 15), doorway)
+    assert not given_up.no_probe.any() and given_up.no_frontier[12, 15]
+    given_up.add(centre(12, 15))  # then the probe there: its edge stays
+    assert np.array_equal(
+        given_up.no_probe, footprint_mask(GRID, centre(12, 15), PROBE_GIVEN_UP_RADIUS_M)
+    )
 
 
 def test_failures_on_frontiers_apart_and_finished_probes_give_up_only_their_disks() -> None:
