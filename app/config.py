@@ -404,8 +404,8 @@ class SteeringConfig(StrictModel):
     """Exponential smoothing of successive commands (0: none)."""
     frontier_period_s: Annotated[float, Field(gt=0.0, le=10.0)] = 0.5
     goal_patience_s: Annotated[float, Field(gt=0.0, le=600.0)] = 8.0
-    """A frontier goal still unreached after this long is given up (it cannot be seen
-    from anywhere the robot can go)."""
+    """A goal the robot has come no closer to (by path) for this long is given up: it
+    cannot be seen from anywhere the robot can go (`app.runtime.exploration.GoalPatience`)."""
     local_window_m: Annotated[float, Field(ge=1.0, le=20.0)] = 6.0
     """Side of the map window around the robot that steering looks at."""
     explored_after_s: Annotated[float, Field(ge=0.0, le=600.0)] = 10.0

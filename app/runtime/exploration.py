@@ -31,6 +31,49 @@ is checked twice a second while it drives, and where it comes to rest after the 
 must still be within the tolerance (a test once saw 0.312 m)."""
 
 
+SAME_GOAL_M = 0.3
+"""A goal within this of the one patience is counting for is the same goal (a frontier's
+nearest cell shifts as the robot sees more of it)."""
+GOAL_PROGRESS_M = 0.1
+"""Coming this much closer to the goal (by path) restarts its patience."""
+
+
+class GoalPatience:
+    """When to give up a goal: when the robot has come no closer to it, by path, for
+    ``patience_s`` (explore_lite's ``progress_timeout``). A goal that merely stays the
+    goal is not a failure: one across a room takes longer to reach than any fixed
+    patience (the home's kitchen doorway, 4.8 m away, was given up after 8 s while the
+    robot drove straight at it, and with it the look at the threshold there).
+
+    Pure: `observe` is shown each new goal with its path length and the time."""
+
+    def __init__(self, patience_s: float) -> None:
+        if not patience_s > 0.0:
+            raise ValueError(f"patience_s: expected > 0, got {patience_s}")
+        self.patience_s = patience_s
+        self._goal_xy: tuple[float, float] | None = None
+        self._closest_m = math.inf
+        self._since_s = 0.0
+
+    def reset(self) -> None:
+        """Forget the goal (none now, or exploring paused): patience starts anew."""
+        self._goal_xy = None
+
+    def observe(self, goal_xy: tuple[float, float], path_length_m: float, now_s: float) -> bool:
+        """Whether the goal at ``goal_xy``, ``path_length_m`` from the robot at
+        ``now_s``, has run out of patience (then it is forgotten, as by `reset`)."""
+        if self._goal_xy is None or math.dist(goal_xy, self._goal_xy) > SAME_GOAL_M:
+            self._goal_xy, self._closest_m, self._since_s = goal_xy, path_length_m, now_s
+            return False
+        if path_length_m <= self._closest_m - GOAL_PROGRESS_M:
+            self._closest_m, self._since_s = path_length_m, now_s
+            return False
+        if now_s - self._since_s > self.patience_s:
+            self.reset()
+            return True
+        return False
+
+
 class Phase(StrEnum):
     EXPLORING = "exploring"
     RETURNING = "returning"  # no reachable frontier left: driving back to the start

@@ -40,7 +40,13 @@ from app.perception.pipeline import FloorResult, trapezoid_from_config
 from app.perception.safe_zone import SafeZoneError, Trapezoid, safe_zone_mask
 from app.runtime.context import Shared
 from app.runtime.drive import premise_broken, zone_not_floor
-from app.runtime.exploration import CoverageClock, Exploration, Phase, PhaseChange
+from app.runtime.exploration import (
+    CoverageClock,
+    Exploration,
+    GoalPatience,
+    Phase,
+    PhaseChange,
+)
 from app.runtime.telemetry import FloatWindow
 from app.workers import StageWorker
 
@@ -344,7 +350,7 @@ class MappingStage:
         """Of them, the failures that gave up their whole frontier (`GivenUpGoals.add`)."""
         self.probes_opened = 0
         """Edge probes that opened their edge (not counted as goals given up)."""
-        self._goal_since: tuple[tuple[float, float], float] | None = None
+        self._patience = GoalPatience(shared.config.steering.goal_patience_s)
         self._frontier_due_s = 0.0
         self._snapshot_due_s = 0.0
         self._floor_deferred = 0
@@ -372,7 +378,7 @@ class MappingStage:
         """After a new calibration or map: the old search means nothing."""
         self.frontier = None
         self._search.drop()
-        self._goal_since = None
+        self._patience.reset()
         self.home_goal = None
         self.exploration = self._new_exploration()
 
@@ -637,7 +643,7 @@ class MappingStage:
                 if change is not None and self.on_phase is not None:
                     self.on_phase(change)
         else:
-            self._goal_since = None  # patience counts only while exploring
+            self._patience.reset()  # patience counts only while exploring
 
     def _give_up(
         self,
@@ -652,12 +658,13 @@ class MappingStage:
         return whole
 
     def _track_goal(self, mapper: GroundMapper, search: FrontierSearch, now: float) -> None:
-        """Give up on a goal that has stayed (within 0.3 m) the goal for
-        ``steering.goal_patience_s``: it cannot be seen from where the robot can go."""
+        """Give up on a goal the robot has come no closer to for
+        ``steering.goal_patience_s`` (`GoalPatience`): it cannot be seen from where the
+        robot can go."""
         goal = search.goal
         patience_s = self.shared.config.steering.goal_patience_s
         if goal is None:
-            self._goal_since = None
+            self._patience.reset()
             return
         pose = self.shared.odometry.pose
         if goal.probe and math.dist(goal.xy, (pose.x_m, pose.y_m)) < PROBE_ARRIVED_M:
@@ -678,12 +685,9 @@ class MappingStage:
                 "its edge is open" if opened else "its edge stays",
                 extra={"event": "probe_done", "opened": opened},
             )
-            self._goal_since = None
+            self._patience.reset()
             return
-        if self._goal_since is None or math.dist(goal.xy, self._goal_since[0]) > 0.3:
-            self._goal_since = (goal.xy, now)
-            return
-        if now - self._goal_since[1] > patience_s:
+        if self._patience.observe(goal.xy, goal.path_length_m, now):
             cluster = (
                 search.clusters[goal.cluster_index].cells
                 if 0 <= goal.cluster_index < len(search.clusters)
@@ -691,7 +695,8 @@ class MappingStage:
             )
             whole = self._give_up(mapper, goal.xy, cluster)
             log.info(
-                "frontier goal (%.2f, %.2f) given up after %.0f s%s",
+                "%s (%.2f, %.2f) given up: no closer in %.0f s%s",
+                "edge probe" if goal.probe else "frontier goal",
                 goal.xy[0],
                 goal.xy[1],
                 patience_s,
@@ -700,7 +705,6 @@ class MappingStage:
                 else "",
                 extra={"event": "goal_given_up"},
             )
-            self._goal_since = None
 
 
 class SteeringStage:
