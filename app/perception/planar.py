@@ -1317,14 +1317,20 @@ def _standing_feet(
         r = height - 1
         while r >= 0:
             if standing[r, c]:
-                foot = edge if floor_below and edge >= 0 else r
-                base = row_distance_m[foot]
-                k = foot
-                while k >= 0 and (standing[k, c] or not floor[k, c]):
-                    if not (row_distance_m[k] - base <= foot_depth_m):
-                        break  # also at the horizon, where the distance is NaN
-                    feet[k, c] = True
-                    k -= 1
+                # With no floor seen below it (since the last run), the run's lowest
+                # pixel is not its foot: that is hidden (behind a nearer thing, or a
+                # wall's plain lower part above unknown ground), and the lowest pixel
+                # lands behind it. Only a run at the image's bottom row is known to
+                # stand at least that near.
+                if floor_below or r == height - 1:
+                    foot = edge if floor_below and edge >= 0 else r
+                    base = row_distance_m[foot]
+                    k = foot
+                    while k >= 0 and (standing[k, c] or not floor[k, c]):
+                        if not (row_distance_m[k] - base <= foot_depth_m):
+                            break  # also at the horizon, where the distance is NaN
+                        feet[k, c] = True
+                        k -= 1
                 # The rest of this standing run lands behind it: skip it.
                 while r >= 0 and standing[r, c]:
                     r -= 1
@@ -1354,9 +1360,14 @@ def standing_feet(
     *foot* is where the floor below it ends: the first not-floor pixel above the
     ``floor`` (colour or parallax-flat floor) when only not-floor pixels lie between (the
     lower part of a plain wall, which parallax cannot test, stands too), else the run's
-    own lowest pixel. Kept: the pixels from the foot up, through not-floor or standing
-    ones, whose forward ground distance (``row_distance_m``, per row; NaN above the
-    horizon) is within ``foot_depth_m`` of the foot's. Returns a new (H, W) bool mask.
+    own lowest pixel. A run with no floor below it since the run beneath (or the bottom
+    of the image) has no foot the camera sees: a wall above a box, or one whose plain
+    lower part rises from ground the mask does not call floor, would put its lowest
+    pixel behind itself, in a ray across the room beyond; it keeps nothing. A run that
+    reaches the image's bottom row stands there. Kept: the pixels from the foot up,
+    through not-floor or standing ones, whose forward ground distance
+    (``row_distance_m``, per row; NaN above the horizon) is within ``foot_depth_m`` of
+    the foot's. Returns a new (H, W) bool mask.
 
     Examples
     --------

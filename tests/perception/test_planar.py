@@ -633,6 +633,32 @@ def test_flat_floor_between_an_edge_and_a_far_wall_keeps_the_edge_unproven() -> 
     assert not any(r >= 280 for r in rows)  # ...not at the threshold
 
 
+def test_a_run_with_no_floor_seen_below_it_has_no_foot() -> None:
+    """A wall whose plain lower part rises from ground the mask does not call floor
+    (another room's floor, seen through a door): its lowest standing pixel projects
+    behind the wall, and each frame's lands elsewhere along the ray (the home's runs
+    drew streaks of such marks through the walls). No foot is better than that one."""
+    standing, floor = one_column((200, 260, "standing"))
+    assert kept_rows(planar.standing_feet(standing, floor, FEET_ROWS_M)) == []
+    # Above a nearer thing (a wall over a box, not-floor between): the box keeps its
+    # foot, the wall none.
+    standing, floor = one_column(
+        (401, 479, "floor"), (330, 400, "standing"), (200, 300, "standing")
+    )
+    rows = kept_rows(planar.standing_feet(standing, floor, FEET_ROWS_M))
+    assert rows and rows[-1] == 400 and min(rows) > 300
+    # Floor seen between them gives the wall its foot again: where that floor ends.
+    floor[320:330, 0] = True
+    rows = kept_rows(planar.standing_feet(standing, floor, FEET_ROWS_M))
+    assert 400 in rows and 319 in rows and max(r for r in rows if r < 330) == 319
+
+
+def test_a_run_at_the_bottom_of_the_image_stands_there() -> None:
+    standing, floor = one_column((420, 479, "standing"))
+    rows = kept_rows(planar.standing_feet(standing, floor, FEET_ROWS_M))
+    assert rows and rows[-1] == 479
+
+
 def test_standing_feet_checks_its_shapes() -> None:
     with pytest.raises(ValueError, match="must agree"):
         planar.standing_feet(np.zeros((4, 3), bool), np.zeros((4, 3), bool), np.zeros(3))
