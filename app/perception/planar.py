@@ -1323,7 +1323,7 @@ def _standing_feet(
                 # lands behind it. Only a run at the image's bottom row is known to
                 # stand at least that near.
                 if floor_below or r == height - 1:
-                    foot = edge if floor_below and edge >= 0 else r
+                    foot = edge if edge >= 0 else r  # an edge is only set above floor
                     base = row_distance_m[foot]
                     k = foot
                     while k >= 0 and (standing[k, c] or not floor[k, c]):

@@ -39,18 +39,16 @@ GOAL_PROGRESS_M = 0.1
 
 
 class GoalPatience:
-    """When to give up a goal: when the robot has come no closer to it, by path, for
-    ``patience_s`` (explore_lite's ``progress_timeout``). A goal that merely stays the
-    goal is not a failure: one across a room takes longer to reach than any fixed
-    patience (the home's kitchen doorway, 4.8 m away, was given up after 8 s while the
-    robot drove straight at it, and with it the look at the threshold there).
+    """When to give up a goal: when the robot has come no closer to it, by path, for the
+    patience (explore_lite's ``progress_timeout``). A goal that merely stays the goal is
+    not a failure: one across a room takes longer to reach than any fixed patience (the
+    home's kitchen doorway, 4.8 m away, was given up after 8 s while the robot drove
+    straight at it, and with it the look at the threshold there).
 
-    Pure: `observe` is shown each new goal with its path length and the time."""
+    Pure: `observe` is shown each new goal with its path length, the time and the
+    patience (``steering.goal_patience_s``, read each time: the API may change it live)."""
 
-    def __init__(self, patience_s: float) -> None:
-        if not patience_s > 0.0:
-            raise ValueError(f"patience_s: expected > 0, got {patience_s}")
-        self.patience_s = patience_s
+    def __init__(self) -> None:
         self._goal_xy: tuple[float, float] | None = None
         self._closest_m = math.inf
         self._since_s = 0.0
@@ -59,16 +57,19 @@ class GoalPatience:
         """Forget the goal (none now, or exploring paused): patience starts anew."""
         self._goal_xy = None
 
-    def observe(self, goal_xy: tuple[float, float], path_length_m: float, now_s: float) -> bool:
+    def observe(
+        self, goal_xy: tuple[float, float], path_length_m: float, now_s: float, patience_s: float
+    ) -> bool:
         """Whether the goal at ``goal_xy``, ``path_length_m`` from the robot at
-        ``now_s``, has run out of patience (then it is forgotten, as by `reset`)."""
+        ``now_s``, has come no closer for more than ``patience_s`` (then it is forgotten,
+        as by `reset`)."""
         if self._goal_xy is None or math.dist(goal_xy, self._goal_xy) > SAME_GOAL_M:
             self._goal_xy, self._closest_m, self._since_s = goal_xy, path_length_m, now_s
             return False
         if path_length_m <= self._closest_m - GOAL_PROGRESS_M:
             self._closest_m, self._since_s = path_length_m, now_s
             return False
-        if now_s - self._since_s > self.patience_s:
+        if now_s - self._since_s > patience_s:
             self.reset()
             return True
         return False

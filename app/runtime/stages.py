@@ -350,7 +350,7 @@ class MappingStage:
         """Of them, the failures that gave up their whole frontier (`GivenUpGoals.add`)."""
         self.probes_opened = 0
         """Edge probes that opened their edge (not counted as goals given up)."""
-        self._patience = GoalPatience(shared.config.steering.goal_patience_s)
+        self._patience = GoalPatience()
         self._frontier_due_s = 0.0
         self._snapshot_due_s = 0.0
         self._floor_deferred = 0
@@ -687,7 +687,7 @@ class MappingStage:
             )
             self._patience.reset()
             return
-        if self._patience.observe(goal.xy, goal.path_length_m, now):
+        if self._patience.observe(goal.xy, goal.path_length_m, now, patience_s):
             cluster = (
                 search.clusters[goal.cluster_index].cells
                 if 0 <= goal.cluster_index < len(search.clusters)
