@@ -10,6 +10,7 @@ from collections.abc import Sequence
 
 from app.devices import SimHandles
 from app.mapping.frames import Pose2D
+from app.runtime.telemetry import nearest_rank
 
 SAMPLE_PERIOD_S = 0.1
 """Samples at most this often (10 Hz): the error changes over seconds, and an hour
@@ -84,6 +85,6 @@ def _summary(values: Sequence[float], digits: int) -> dict[str, float] | None:
     ordered = sorted(values)
 
     def pick(q: float) -> float:
-        return round(ordered[min(len(ordered) - 1, round(q * (len(ordered) - 1)))], digits)
+        return round(nearest_rank(ordered, q), digits)
 
     return {"p50": pick(0.5), "p95": pick(0.95), "final": round(values[-1], digits)}

@@ -26,6 +26,12 @@ def rss_mb() -> float | None:
     return None
 
 
+def nearest_rank(ordered: Sequence[float], q: float) -> float:
+    """The ``q`` quantile of non-empty sorted ``ordered``: the value at the nearest rank
+    (no interpolation; every figure in the reports uses this rule)."""
+    return float(ordered[min(len(ordered) - 1, round(q * (len(ordered) - 1)))])
+
+
 def percentiles_ms(values_s: Any) -> dict[str, float | None]:
     """p50, p95 and max in milliseconds of durations in seconds, and their count."""
     data = sorted(values_s)
@@ -33,7 +39,7 @@ def percentiles_ms(values_s: Any) -> dict[str, float | None]:
         return {"p50": None, "p95": None, "max": None, "n": 0}
 
     def pick(q: float) -> float:
-        return round(float(data[min(len(data) - 1, round(q * (len(data) - 1)))]) * 1000, 2)
+        return round(nearest_rank(data, q) * 1000, 2)
 
     return {"p50": pick(0.5), "p95": pick(0.95), "max": round(data[-1] * 1000, 2), "n": len(data)}
 
