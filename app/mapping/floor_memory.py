@@ -8,6 +8,13 @@ module is the map's memory of geometry and experience, beside the log-odds grid:
   over them or motion parallax found them on the floor plane. On such a cell a colour
   boundary is not an obstacle (`FloorMemory.correct_patch` turns it back into floor)
   until geometry (parallax) shows something standing there (`FloorMemory.mark_standing`).
+* ``driven``: the cells the robot has driven over, with the cells its centre crossed
+  (its track). Its body stood there, so nothing stood there then: one geometric test's
+  standing mark does not take such a cell out of the known floor (a threshold strip the
+  walls test misreads walled the doorway the robot had come through); only a foot seen
+  there in `FloorMemoryParams.standing_max_marks` tests, net of those that saw floor,
+  does (something put down since). The track is floor the robot fits on: the frontier
+  search may cross it however close the map's obstacles lie (`app.mapping.frontiers`).
 * a colour layer: each world cell's mean colour as the camera saw it from close by (a
   cell's colour is only known while it is ahead of the robot, not when the robot stands
   on it).
@@ -34,6 +41,11 @@ from app.mapping.frames import FLOOR, NOT_FLOOR, UNSEEN, GroundGrid, Pose2D
 
 # Appearances are kept in the floor network's scaled CIELAB, to be handed to it as they are.
 from app.perception.floor_net import LAB_CENTER, LAB_SCALE
+
+DRIVEN_FOOTPRINT = 1
+"""`FloorMemory.driven` bit: the robot's footprint covered the cell."""
+DRIVEN_TRACK = 2
+"""`FloorMemory.driven` bit: the robot's centre passed within one cell of the cell's."""
 
 
 @dataclass(frozen=True)
@@ -157,12 +169,15 @@ class FloorMemoryState:
     standing_marks, seen_foot_marks : (rows, cols) uint8, `FloorMemory.standing_marks`
         and `FloorMemory.seen_foot_marks` (the standing layer follows from them); None
         for a map saved without them
+    driven : (rows, cols) uint8, `FloorMemory.driven` (`DRIVEN_FOOTPRINT` |
+        `DRIVEN_TRACK` bits); None for a map saved without it
     """
 
     confirmed: NDArray[np.uint8]
     appearances: NDArray[np.float32]
     standing_marks: NDArray[np.uint8] | None = None
     seen_foot_marks: NDArray[np.uint8] | None = None
+    driven: NDArray[np.uint8] | None = None
 
 
 class FloorMemory:
@@ -186,6 +201,9 @@ class FloorMemory:
         standing pixels' own lowest one), not placed where a frame's floor ended below a
         gap of not-floor (a plain wall's lower part, or another floor): counted and
         lost as those are (`mark_standing`'s ``seen_cells``)."""
+        self.driven = np.zeros(world_grid.shape, dtype=np.uint8)
+        """`DRIVEN_FOOTPRINT` where the robot's footprint covered the cell, `DRIVEN_TRACK`
+        where its centre passed (module docstring)."""
         self._colour = np.zeros((n, 3), dtype=np.float32)
         self._sightings = np.zeros(n, dtype=np.uint16)
         self._appearance_lab = np.zeros((0, 3), dtype=np.float32)
@@ -250,21 +268,37 @@ class FloorMemory:
         return int(new.size)
 
     def drive_over(self, T_world_robot: Pose2D, radius_m: float) -> int:
-        """The robot stands on the cells within ``radius_m`` of its centre: floor."""
+        """The robot stands on the cells within ``radius_m`` of its centre: floor, and
+        driven over (its own cell and those within one cell of its centre are its track).
+        Returns how many cells were newly confirmed."""
         grid = self.world_grid
         inv = 1.0 / grid.cell_m
         r0 = (grid.x_max_m - T_world_robot.x_m) * inv
         c0 = (grid.y_max_m - T_world_robot.y_m) * inv
-        span = radius_m * inv
+        span = max(radius_m * inv, 1.0)
         rows = np.arange(max(math.floor(r0 - span), 0), min(math.ceil(r0 + span), grid.rows))
         cols = np.arange(max(math.floor(c0 - span), 0), min(math.ceil(c0 + span), grid.cols))
         if rows.size == 0 or cols.size == 0:
             return 0
         dr = rows[:, None] + 0.5 - r0
         dc = cols[None, :] + 0.5 - c0
-        inside = dr * dr + dc * dc <= span * span
+        distance2 = dr * dr + dc * dc
+        inside = distance2 <= (radius_m * inv) ** 2
+        # One cell around the centre: successive poses' tracks join side by side (4-
+        # connected), so a search without corner cutting can follow a diagonal track.
+        track = distance2 <= 1.0
+        own_r, own_c = math.floor(r0), math.floor(c0)
+        if 0 <= own_r < grid.rows and 0 <= own_c < grid.cols:
+            track[own_r - int(rows[0]), own_c - int(cols[0])] = True
         rr, cc = np.nonzero(inside)
+        tr, tc = np.nonzero(track)
+        self.driven[rows[rr], cols[cc]] |= DRIVEN_FOOTPRINT
+        self.driven[rows[tr], cols[tc]] |= DRIVEN_TRACK
         return self.confirm_cells(rows[rr] * grid.cols + cols[cc])
+
+    def track(self) -> NDArray[np.bool_]:
+        """(rows, cols) bool, the cells the robot's centre has crossed (`drive_over`)."""
+        return np.asarray((self.driven & DRIVEN_TRACK) != 0, dtype=np.bool_)
 
     def mark_standing(
         self,
@@ -285,11 +319,21 @@ class FloorMemory:
         if cells.size == 0:
             return
         seen = cells if seen_cells is None else np.intersect1d(cells, seen_cells)
+        top = self.params.standing_max_marks
         seen_marks = self.seen_foot_marks.reshape(-1)
-        seen_marks[seen] = np.minimum(seen_marks[seen] + 1, self.params.standing_max_marks)
-        self.confirmed.reshape(-1)[cells] = 0
+        seen_marks[seen] = np.minimum(seen_marks[seen] + 1, top)
         marks = self.standing_marks.reshape(-1)
-        marks[cells] = np.minimum(marks[cells] + 1, self.params.standing_max_marks)
+        marks[cells] = np.minimum(marks[cells] + 1, top)
+        # The robot stood on a driven cell: only a foot seen there again and again says
+        # something stands there now, and then the cell is no longer driven.
+        driven = self.driven.reshape(-1)
+        on_track = driven[cells] != 0
+        overruled = on_track & (seen_marks[cells] >= top)
+        driven[cells[overruled]] = 0
+        cells = cells[~on_track | overruled]
+        if cells.size == 0:
+            return
+        self.confirmed.reshape(-1)[cells] = 0
         sure = cells[marks[cells] >= self.params.standing_min_marks]
         self.standing.reshape(-1)[sure] = 1
         if self._appearance_lab.shape[0] == 0:
@@ -405,11 +449,13 @@ class FloorMemory:
             table.reshape(-1, 4),
             self.standing_marks.copy(),
             self.seen_foot_marks.copy(),
+            self.driven.copy(),
         )
 
     def restore(self, state: FloorMemoryState) -> None:
         """Continue from a saved map's memory (the colour layer starts empty; without
-        saved marks, so does the standing layer).
+        saved marks, so does the standing layer; without a saved driven layer, so does
+        that).
 
         Raises
         ------
@@ -419,6 +465,7 @@ class FloorMemory:
             "confirmed floor": state.confirmed,
             "standing marks": state.standing_marks,
             "seen foot marks": state.seen_foot_marks,
+            "driven": state.driven,
         }
         for name, layer in layers.items():
             if layer is not None and layer.shape != self.world_grid.shape:
@@ -437,7 +484,12 @@ class FloorMemory:
             (state.seen_foot_marks, self.seen_foot_marks),
         ):
             layer[...] = 0 if saved is None else np.minimum(saved, top)
-        self.standing[...] = self.standing_marks >= self.params.standing_min_marks
+        self.driven[...] = (
+            0 if state.driven is None else state.driven & (DRIVEN_FOOTPRINT | DRIVEN_TRACK)
+        )
+        self.standing[...] = (self.standing_marks >= self.params.standing_min_marks) & (
+            self.driven == 0
+        )
         self._appearance_lab = table[:, :3].copy()
         self._appearance_cells = table[:, 3].astype(np.float64)
         self._colour.fill(0.0)
@@ -448,6 +500,7 @@ class FloorMemory:
         self.standing.fill(0)
         self.standing_marks.fill(0)
         self.seen_foot_marks.fill(0)
+        self.driven.fill(0)
         self._colour.fill(0.0)
         self._sightings.fill(0)
         self._appearance_lab = np.zeros((0, 3), dtype=np.float32)

@@ -14,7 +14,10 @@ far from obstacles), plus the robot's *footprint*: the cells within ``robot_radi
 its position (always including its own cell) that are not occupied. The footprint counts
 as known free even when the map has no evidence there, because the camera never sees
 under the robot, and it is not a frontier itself; it also lets the search start when the
-robot stands in an inflated zone.
+robot stands in an inflated zone. Given its *track* (the cells its centre has crossed,
+`app.mapping.floor_memory`), the free cells on it are traversable too, however close an
+obstacle lies: the robot fitted there, so the map's obstacles beside a doorway it came
+through are misplaced or misread, and the way back stays open.
 
 **Clearance.** The shortest path hugs every obstacle at exactly ``inflation_radius_m``,
 which leaves the robot's side a centimetre or two from a box once map cells, the pose
@@ -472,6 +475,7 @@ def find_frontiers(
     robot_heading_rad: float | None = None,
     probe_cells: NDArray[np.bool_] | None = None,
     no_frontier: NDArray[np.bool_] | None = None,
+    track: NDArray[np.bool_] | None = None,
 ) -> FrontierSearch:
     """Frontier clusters of a classified grid and the goal to explore next.
 
@@ -488,6 +492,8 @@ def find_frontiers(
     no_frontier : (rows, cols) bool, cells that make no frontier (around goals given up).
         They stay what they are: counting them as free floor instead put a new frontier
         on their rim, a step further into the unknown, and the next goal there.
+    track : (rows, cols) bool, the cells the robot's centre has crossed: traversable
+        where free, whatever the inflation (module docstring); None: no track.
 
     Returns
     -------
@@ -508,7 +514,11 @@ def find_frontiers(
     if params.exclude_radius_m > params.robot_radius_m:
         excluded = excluded | footprint_mask(grid, robot_xy, params.exclude_radius_m)
     frontier = frontier_mask(known, adjacency=params.frontier_adjacency, exclude=excluded)
-    traversable, weight = _traversable(known == FREE, occupied, footprint, cell_m, params)
+    if track is not None and track.shape != cells.shape:
+        raise ValueError(f"track: expected shape {cells.shape}, got {track.shape}")
+    # The footprint, and the free cells of the track, are crossed whatever the inflation.
+    fitted = footprint if track is None else footprint | (track & (known == FREE))
+    traversable, weight = _traversable(known == FREE, occupied, fitted, cell_m, params)
 
     (row, col) = (int(v) for v in grid.cell_of(np.array([robot_xy]))[0])
     on_map = 0 <= row < grid.rows and 0 <= col < grid.cols
@@ -560,7 +570,7 @@ def find_frontiers(
             None
             if probe_cells is None
             else _probe_goal(
-                known, grid, probe_cells, distance, parent, params, (row, col), footprint, excluded
+                known, grid, probe_cells, distance, parent, params, (row, col), fitted, excluded
             )
         )
         if probe is not None:
@@ -592,14 +602,15 @@ def find_frontiers(
 def _traversable(
     free: NDArray[np.bool_],
     obstacles: NDArray[np.bool_],
-    footprint: NDArray[np.bool_],
+    fitted: NDArray[np.bool_],
     cell_m: float,
     params: FrontierParams,
 ) -> tuple[NDArray[np.bool_], NDArray[np.float64]]:
     """The cells the robot's centre may cross (``free`` cells outside the ``obstacles``'
-    inflation, plus its footprint) and their step weights (`clearance_weights`)."""
+    inflation, plus the ``fitted`` ones: its footprint, its track) and their step weights
+    (`clearance_weights`)."""
     inflated = inflate_obstacles(obstacles, params.inflation_radius_m / cell_m)
-    traversable = (free & ~inflated) | (footprint & ~obstacles)
+    traversable = (free & ~inflated) | (fitted & ~obstacles)
     weight = clearance_weights(
         obstacles,
         cell_m,
@@ -618,12 +629,13 @@ def _probe_goal(
     parent: NDArray[np.int64],
     params: FrontierParams,
     robot_cell: tuple[int, int],
-    footprint: NDArray[np.bool_],
+    fitted: NDArray[np.bool_],
     excluded: NDArray[np.bool_],
 ) -> FrontierGoal | None:
     """The nearest reachable cell from which to look at the unproven edge that stands
     between the robot and the nearest frontier it cannot reach (module docstring).
-    ``known`` is the classified grid with the robot's footprint free."""
+    ``known`` is the classified grid with the robot's footprint free; ``fitted`` the
+    cells crossed whatever the inflation (the footprint and the free track)."""
     if probe_cells.shape != known.shape:
         raise ValueError(f"probe_cells: expected shape {known.shape}, got {probe_cells.shape}")
     occupied = known == OCCUPIED
@@ -646,7 +658,7 @@ def _probe_goal(
     frontier = kept[labels]
     if not frontier.any():
         return None
-    traversable, weight = _traversable(relaxed == FREE, hard, footprint, cell_m, params)
+    traversable, weight = _traversable(relaxed == FREE, hard, fitted, cell_m, params)
     weight[~reachable] += PROBE_CROSSING_COST
     relaxed_distance, relaxed_parent = path_distances(traversable, robot_cell, cell_m, weight)
     ahead = np.where(frontier, relaxed_distance, np.inf)

@@ -1072,6 +1072,7 @@ class GroundMapper:
             self.frontier_params,
             probe_cells,
             self.given_up.no_frontier.copy(),
+            self.memory.track(),
         )
 
     def frontier_probe_cells(self) -> NDArray[np.bool_]:
@@ -1117,6 +1118,7 @@ class FrontierInputs(NamedTuple):
     params: FrontierParams
     probe_cells: NDArray[np.bool_] | None
     no_frontier: NDArray[np.bool_] | None = None
+    track: NDArray[np.bool_] | None = None
 
 
 def search_frontiers(inputs: FrontierInputs) -> FrontierSearch:
@@ -1128,6 +1130,7 @@ def search_frontiers(inputs: FrontierInputs) -> FrontierSearch:
         inputs.params,
         probe_cells=inputs.probe_cells,
         no_frontier=inputs.no_frontier,
+        track=inputs.track,
     )
 
 

@@ -24,6 +24,9 @@ crash never leaves half a map). It holds a `SavedMap`:
 ``seen_foot_marks``    optional (rows, cols) uint8, of those, the ones that saw its
                        foot there (`app.mapping.floor_memory`); both or neither, and
                        only beside ``confirmed_floor``
+``driven_floor``       optional (rows, cols) uint8, the cells the robot drove over:
+                       bit 1 its footprint, bit 2 its centre's track
+                       (`app.mapping.floor_memory`); only beside ``confirmed_floor``
 ``remembered``         optional (rows, cols) int8, each cell's last known class
                        before decay faded it (`OccupancyGrid.remembered`: -1 never
                        known, 0 free, 1 occupied); absent: what the map knows now
@@ -111,6 +114,8 @@ def map_arrays(snapshot: SavedMap) -> dict[str, NDArray[np.generic]]:
         if memory.standing_marks is not None and memory.seen_foot_marks is not None:
             arrays["standing_marks"] = np.asarray(memory.standing_marks, dtype=np.uint8)
             arrays["seen_foot_marks"] = np.asarray(memory.seen_foot_marks, dtype=np.uint8)
+        if memory.driven is not None:
+            arrays["driven_floor"] = np.asarray(memory.driven, dtype=np.uint8)
     if snapshot.remembered is not None:
         arrays["remembered"] = np.asarray(snapshot.remembered, dtype=np.int8)
     return arrays
@@ -303,7 +308,10 @@ def _read_floor_memory(
             _uint8_layer(read, path, "standing_marks", grid),
             _uint8_layer(read, path, "seen_foot_marks", grid),
         )
-    return FloorMemoryState(confirmed, np.asarray(table, dtype=np.float32), *marks)
+    driven = _uint8_layer(read, path, "driven_floor", grid) if "driven_floor.npy" in names else None
+    if driven is not None and int(driven.max(initial=0)) > 3:
+        raise MapFileError(f"{path}: 'driven_floor' holds values above 3 (two bits per cell)")
+    return FloorMemoryState(confirmed, np.asarray(table, dtype=np.float32), *marks, driven)
 
 
 def _pair_present(names: set[str], path: Path, first: str, second: str) -> bool:

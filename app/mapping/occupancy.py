@@ -125,6 +125,8 @@ PATCH_FREE = 1
 """`cast_rays` label: seen floor before the first obstacle along a ray."""
 PATCH_OCCUPIED = 2
 """`cast_rays` label: in the band of not-floor just beyond the floor along a ray."""
+_UNDER_ROBOT = 3
+"""`_fuse_kernel`'s mark of a world cell under the robot's footprint."""
 
 
 @dataclass(frozen=True)
@@ -160,8 +162,12 @@ class OccupancyParams:
     decay_step_m : float, >= 0, travel from the anchor pose that triggers a global decay
         (smaller pose changes, however many, decay nothing).
     footprint_free_radius_m : float, >= 0; when > 0, world cells whose centres lie within
-        this distance of the robot's position get a free update every frame (the robot
-        stands there, and the camera never sees under it). 0 disables it.
+        this distance of the robot's position are set to ``clamp_min`` every frame
+        unless the frame marks them occupied: the robot stands there (the camera never
+        sees under it), so whatever colour boundaries had put there was wrong, and a
+        few free updates would not wear off a boundary seen for seconds before (a
+        threshold strip the robot then drove across stayed a wall behind it). 0
+        disables it.
     """
 
     log_odds_free: float = -0.4
@@ -717,7 +723,8 @@ def _fuse_kernel(
                 if mark[w] == 0:
                     touched[n_touched] = w
                     n_touched += 1
-                    mark[w] = PATCH_FREE
+                if mark[w] != PATCH_OCCUPIED:
+                    mark[w] = _UNDER_ROBOT
     flat = log_odds.reshape(-1)
     n_free = 0
     n_occ = 0
@@ -726,6 +733,10 @@ def _fuse_kernel(
         if mark[w] == PATCH_OCCUPIED:
             value = flat[w] + l_occ
             n_occ += 1
+        elif mark[w] == _UNDER_ROBOT:
+            # Nothing stands where the robot stands: what boundaries said there was wrong.
+            value = lo
+            n_free += 1
         else:
             value = flat[w] + l_free
             n_free += 1
@@ -747,7 +758,8 @@ def fuse_patch_labels(
     ``T_world_robot`` and lands in the world cell containing it; each world cell reached
     gets one update, ``log_odds_occupied`` if any occupied cell landed in it, else
     ``log_odds_free``, then is clamped. With ``params.footprint_free_radius_m > 0`` the
-    world cells within that distance of the robot count as reached by a free cell.
+    world cells within that distance of the robot that no occupied cell reached are set
+    to ``clamp_min`` (counted as free updates).
 
     Parameters
     ----------

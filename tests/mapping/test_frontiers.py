@@ -164,6 +164,33 @@ def test_inflation_closes_a_narrow_door_and_footprint_lets_the_robot_start() -> 
     assert bare.goal is not None and bare.goal.cell[0] == 1
 
 
+def test_the_robots_track_keeps_a_door_it_came_through_open() -> None:
+    cells, grid = parse(
+        """
+        ?????????
+        .........
+        ####.####
+        .........
+        .........
+        """.replace(" ", "")
+    )
+    robot = centre(grid, 4, 4)
+    params = FrontierParams(min_cluster_cells=4, inflation_radius_m=CELL, robot_radius_m=0.0)
+    assert find_frontiers(cells, grid, robot, params).goal is None  # the door is inflated shut
+    # The robot's centre came down column 4 through the door: it fitted there.
+    track = np.zeros(cells.shape, bool)
+    track[1:5, 4] = True
+    through = find_frontiers(cells, grid, robot, params, track=track)
+    assert through.goal is not None and through.goal.cell[0] == 1
+    assert [tuple(p) for p in through.goal.path_cells[:4]] == [(4, 4), (3, 4), (2, 4), (1, 4)]
+    # A track cell the map calls occupied now (something put down since) is not crossed.
+    blocked = cells.copy()
+    blocked[2, 4] = OCCUPIED
+    assert find_frontiers(blocked, grid, robot, params, track=track).goal is None
+    with pytest.raises(ValueError, match="track: expected shape"):
+        find_frontiers(cells, grid, robot, params, track=track[1:])
+
+
 def test_frontier_mask_adjacency() -> None:
     cells = np.array([[UNKNOWN, FREE, FREE], [FREE, FREE, FREE]], np.int8)
     assert frontier_mask(cells).astype(int).tolist() == [[0, 1, 0], [1, 0, 0]]

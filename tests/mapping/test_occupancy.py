@@ -577,3 +577,28 @@ def test_a_grid_holds_exactly_its_own_cells() -> None:
     # The points of cell_of: the corner (x_max, y_max) is on it, past it is not.
     points = np.array([[2.0, 1.0], [2.01, 1.0], [0.01, -0.49], [-0.01, 0.0]])
     assert grid.holds(grid.cell_of(points)).tolist() == [True, False, True, False]
+
+
+def test_the_footprint_wipes_out_an_earlier_wall_unless_this_frame_sees_one() -> None:
+    params = OccupancyParams(footprint_free_radius_m=0.06, half_distance_m=float("inf"))
+    grid = OccupancyGrid(WORLD, params)
+    grid.log_odds[39:41, 19:21] = params.clamp_max  # a threshold seen as a wall for seconds
+    unseen = np.full(PATCH.shape, UNSEEN, np.uint8)
+    # The robot stands on it: its cells drop to the strongest free, in one frame.
+    grid.update(unseen, PATCH, Pose2D(0.0, 0.0, 1.0), CAMERA)
+    assert (grid.log_odds[39:41, 19:21] == params.clamp_min).all()
+    assert (grid.classify()[39:41, 19:21] == FREE).all()
+    # An obstacle this frame marks inside the footprint's radius keeps its occupied update.
+    labels = np.zeros(PATCH.shape, np.uint8)
+    r, c = PATCH.cell_of(np.array([[0.02, 0.02]]))[0]
+    labels[r, c] = PATCH_OCCUPIED
+    log_odds = np.zeros(WORLD.shape, np.float32)
+    n_free, n_occ = fuse_patch_labels(log_odds, WORLD, labels, PATCH, Pose2D(), params)
+    assert (n_free, n_occ) == (3, 1)
+    assert log_odds[39, 19] == pytest.approx(params.log_odds_occupied)
+    assert sorted(log_odds[39:41, 19:21].ravel().tolist()) == [
+        params.clamp_min,
+        params.clamp_min,
+        params.clamp_min,
+        pytest.approx(0.85),
+    ]
