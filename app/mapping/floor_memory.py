@@ -9,12 +9,13 @@ module is the map's memory of geometry and experience, beside the log-odds grid:
   boundary is not an obstacle (`FloorMemory.correct_patch` turns it back into floor)
   until geometry (parallax) shows something standing there (`FloorMemory.mark_standing`).
 * ``driven``: the cells the robot has driven over, with the cells its centre crossed
-  (its track). Its body stood there, so nothing stood there then: one geometric test's
-  standing mark does not take such a cell out of the known floor (a threshold strip the
-  walls test misreads walled the doorway the robot had come through); only a foot seen
-  there in `FloorMemoryParams.standing_max_marks` tests, net of those that saw floor,
-  does (something put down since). The track is floor the robot fits on: the frontier
-  search may cross it however close the map's obstacles lie (`app.mapping.frontiers`).
+  (its track): where the robot's body fitted, so the frontier search may cross the
+  track's free cells with the body's clearance alone (`app.mapping.frontiers`). It is
+  history, not proof: the pose it was marked at may be a cell or two off, so a standing
+  mark still takes a driven cell out of the known floor. (Tried and not kept: keeping
+  driven cells floor until a foot was seen there three times. With the pose 0.1-0.2 m
+  off, the footprint lands on the edges of boxes the robot passed, and the two-room
+  run lost its boxes from the map and hit one.)
 * a colour layer: each world cell's mean colour as the camera saw it from close by (a
   cell's colour is only known while it is ahead of the robot, not when the robot stands
   on it).
@@ -319,21 +320,11 @@ class FloorMemory:
         if cells.size == 0:
             return
         seen = cells if seen_cells is None else np.intersect1d(cells, seen_cells)
-        top = self.params.standing_max_marks
         seen_marks = self.seen_foot_marks.reshape(-1)
-        seen_marks[seen] = np.minimum(seen_marks[seen] + 1, top)
-        marks = self.standing_marks.reshape(-1)
-        marks[cells] = np.minimum(marks[cells] + 1, top)
-        # The robot stood on a driven cell: only a foot seen there again and again says
-        # something stands there now, and then the cell is no longer driven.
-        driven = self.driven.reshape(-1)
-        on_track = driven[cells] != 0
-        overruled = on_track & (seen_marks[cells] >= top)
-        driven[cells[overruled]] = 0
-        cells = cells[~on_track | overruled]
-        if cells.size == 0:
-            return
+        seen_marks[seen] = np.minimum(seen_marks[seen] + 1, self.params.standing_max_marks)
         self.confirmed.reshape(-1)[cells] = 0
+        marks = self.standing_marks.reshape(-1)
+        marks[cells] = np.minimum(marks[cells] + 1, self.params.standing_max_marks)
         sure = cells[marks[cells] >= self.params.standing_min_marks]
         self.standing.reshape(-1)[sure] = 1
         if self._appearance_lab.shape[0] == 0:
@@ -484,11 +475,9 @@ class FloorMemory:
             (state.seen_foot_marks, self.seen_foot_marks),
         ):
             layer[...] = 0 if saved is None else np.minimum(saved, top)
+        self.standing[...] = self.standing_marks >= self.params.standing_min_marks
         self.driven[...] = (
             0 if state.driven is None else state.driven & (DRIVEN_FOOTPRINT | DRIVEN_TRACK)
-        )
-        self.standing[...] = (self.standing_marks >= self.params.standing_min_marks) & (
-            self.driven == 0
         )
         self._appearance_lab = table[:, :3].copy()
         self._appearance_cells = table[:, 3].astype(np.float64)

@@ -15,9 +15,10 @@ its position (always including its own cell) that are not occupied. The footprin
 as known free even when the map has no evidence there, because the camera never sees
 under the robot, and it is not a frontier itself; it also lets the search start when the
 robot stands in an inflated zone. Given its *track* (the cells its centre has crossed,
-`app.mapping.floor_memory`), the free cells on it are traversable too, however close an
-obstacle lies: the robot fitted there, so the map's obstacles beside a doorway it came
-through are misplaced or misread, and the way back stays open.
+`app.mapping.floor_memory`), the free cells on it are traversable too where they are
+farther than ``robot_radius_m`` from every occupied cell (the body's clearance without
+the inflation's margin): the robot fitted there, so obstacles the map put just inside
+the inflation beside a doorway it came through do not shut the way back.
 
 **Clearance.** The shortest path hugs every obstacle at exactly ``inflation_radius_m``,
 which leaves the robot's side a centimetre or two from a box once map cells, the pose
@@ -493,7 +494,8 @@ def find_frontiers(
         They stay what they are: counting them as free floor instead put a new frontier
         on their rim, a step further into the unknown, and the next goal there.
     track : (rows, cols) bool, the cells the robot's centre has crossed: traversable
-        where free, whatever the inflation (module docstring); None: no track.
+        where free and clear of obstacles by ``robot_radius_m`` (module docstring);
+        None: no track.
 
     Returns
     -------
@@ -516,8 +518,12 @@ def find_frontiers(
     frontier = frontier_mask(known, adjacency=params.frontier_adjacency, exclude=excluded)
     if track is not None and track.shape != cells.shape:
         raise ValueError(f"track: expected shape {cells.shape}, got {track.shape}")
-    # The footprint, and the free cells of the track, are crossed whatever the inflation.
-    fitted = footprint if track is None else footprint | (track & (known == FREE))
+    # The footprint is crossed whatever the inflation; the free track with the body's
+    # clearance alone.
+    fitted = footprint
+    if track is not None:
+        body = inflate_obstacles(occupied, params.robot_radius_m / cell_m)
+        fitted = footprint | (track & (known == FREE) & ~body)
     traversable, weight = _traversable(known == FREE, occupied, fitted, cell_m, params)
 
     (row, col) = (int(v) for v in grid.cell_of(np.array([robot_xy]))[0])
@@ -635,7 +641,8 @@ def _probe_goal(
     """The nearest reachable cell from which to look at the unproven edge that stands
     between the robot and the nearest frontier it cannot reach (module docstring).
     ``known`` is the classified grid with the robot's footprint free; ``fitted`` the
-    cells crossed whatever the inflation (the footprint and the free track)."""
+    cells crossed whatever the inflation (the footprint and the track's free cells clear
+    of obstacles by the robot's radius)."""
     if probe_cells.shape != known.shape:
         raise ValueError(f"probe_cells: expected shape {known.shape}, got {probe_cells.shape}")
     occupied = known == OCCUPIED

@@ -162,12 +162,13 @@ class OccupancyParams:
     decay_step_m : float, >= 0, travel from the anchor pose that triggers a global decay
         (smaller pose changes, however many, decay nothing).
     footprint_free_radius_m : float, >= 0; when > 0, world cells whose centres lie within
-        this distance of the robot's position are set to ``clamp_min`` every frame
-        unless the frame marks them occupied: the robot stands there (the camera never
-        sees under it), so whatever colour boundaries had put there was wrong, and a
-        few free updates would not wear off a boundary seen for seconds before (a
-        threshold strip the robot then drove across stayed a wall behind it). 0
-        disables it.
+        this distance of the robot's position get a free update every frame unless the
+        frame marks them occupied, and are set at least one ``log_odds_free`` below
+        ``free_threshold``: the robot stands there (the camera never sees under it), so
+        whatever colour boundaries had put there was wrong, and a few free updates would
+        not wear off a boundary seen for seconds before (a threshold strip the robot
+        then drove across stayed a wall behind it). Not lower: the pose may be a cell
+        off, and a box's edge must come back when it is seen again. 0 disables it.
     """
 
     log_odds_free: float = -0.4
@@ -681,6 +682,7 @@ def _fuse_kernel(
     l_occ: float,
     lo: float,
     hi: float,
+    under_robot: float,
 ) -> tuple[int, int]:
     w_rows, w_cols = log_odds.shape
     mark = np.zeros(w_rows * w_cols, dtype=np.uint8)
@@ -735,7 +737,9 @@ def _fuse_kernel(
             n_occ += 1
         elif mark[w] == _UNDER_ROBOT:
             # Nothing stands where the robot stands: what boundaries said there was wrong.
-            value = lo
+            # Free at once, but no surer than one sighting past the threshold: the pose
+            # may be a cell off, and a box's edge must come back when it is seen again.
+            value = min(flat[w] + l_free, under_robot)
             n_free += 1
         else:
             value = flat[w] + l_free
@@ -758,8 +762,8 @@ def fuse_patch_labels(
     ``T_world_robot`` and lands in the world cell containing it; each world cell reached
     gets one update, ``log_odds_occupied`` if any occupied cell landed in it, else
     ``log_odds_free``, then is clamped. With ``params.footprint_free_radius_m > 0`` the
-    world cells within that distance of the robot that no occupied cell reached are set
-    to ``clamp_min`` (counted as free updates).
+    world cells within that distance of the robot that no occupied cell reached get a
+    free update and at most ``free_threshold + log_odds_free``.
 
     Parameters
     ----------
@@ -815,6 +819,7 @@ def fuse_patch_labels(
         float(params.log_odds_occupied),
         float(params.clamp_min),
         float(params.clamp_max),
+        float(params.free_threshold + params.log_odds_free),
     )
     return int(n_free), int(n_occ)
 

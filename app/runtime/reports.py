@@ -225,6 +225,11 @@ def report(rt: Runtime) -> dict[str, Any]:
             "confirmed_m2": round(
                 float(mapper.memory.confirmed.sum()) * mapper.grid.world_grid.cell_m**2, 2
             ),
+            # Floor the robot's footprint covered (kept passable: `FloorMemory.driven`).
+            "driven_m2": round(
+                float(np.count_nonzero(mapper.memory.driven)) * mapper.grid.world_grid.cell_m**2,
+                2,
+            ),
             "appearances": len(mapper.memory.appearances()),
             "unlearned": mapper.memory.unlearned,
             "standing_by_horizon_frames": mapper.standing_frames,

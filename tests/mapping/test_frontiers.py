@@ -187,6 +187,9 @@ def test_the_robots_track_keeps_a_door_it_came_through_open() -> None:
     blocked = cells.copy()
     blocked[2, 4] = OCCUPIED
     assert find_frontiers(blocked, grid, robot, params, track=track).goal is None
+    # The track keeps the body's clearance: a robot a cell in radius does not fit the door.
+    wide = FrontierParams(min_cluster_cells=4, inflation_radius_m=CELL, robot_radius_m=CELL)
+    assert find_frontiers(cells, grid, robot, wide, track=track).goal is None
     with pytest.raises(ValueError, match="track: expected shape"):
         find_frontiers(cells, grid, robot, params, track=track[1:])
 

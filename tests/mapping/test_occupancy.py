@@ -584,10 +584,16 @@ def test_the_footprint_wipes_out_an_earlier_wall_unless_this_frame_sees_one() ->
     grid = OccupancyGrid(WORLD, params)
     grid.log_odds[39:41, 19:21] = params.clamp_max  # a threshold seen as a wall for seconds
     unseen = np.full(PATCH.shape, UNSEEN, np.uint8)
-    # The robot stands on it: its cells drop to the strongest free, in one frame.
+    # The robot stands on it: its cells are free in one frame, one sighting past the
+    # threshold, then free updates as usual.
     grid.update(unseen, PATCH, Pose2D(0.0, 0.0, 1.0), CAMERA)
-    assert (grid.log_odds[39:41, 19:21] == params.clamp_min).all()
+    once = params.free_threshold + params.log_odds_free
+    np.testing.assert_allclose(grid.log_odds[39:41, 19:21], once)
     assert (grid.classify()[39:41, 19:21] == FREE).all()
+    grid.update(unseen, PATCH, Pose2D(0.0, 0.0, 1.0), CAMERA)
+    np.testing.assert_allclose(grid.log_odds[39:41, 19:21], once + params.log_odds_free)
+    # Two occupied sightings bring a wall back (the pose may have been a cell off).
+    assert once + 2 * params.log_odds_occupied > params.occupied_threshold
     # An obstacle this frame marks inside the footprint's radius keeps its occupied update.
     labels = np.zeros(PATCH.shape, np.uint8)
     r, c = PATCH.cell_of(np.array([[0.02, 0.02]]))[0]
@@ -597,8 +603,8 @@ def test_the_footprint_wipes_out_an_earlier_wall_unless_this_frame_sees_one() ->
     assert (n_free, n_occ) == (3, 1)
     assert log_odds[39, 19] == pytest.approx(params.log_odds_occupied)
     assert sorted(log_odds[39:41, 19:21].ravel().tolist()) == [
-        params.clamp_min,
-        params.clamp_min,
-        params.clamp_min,
-        pytest.approx(0.85),
+        pytest.approx(once),
+        pytest.approx(once),
+        pytest.approx(once),
+        pytest.approx(params.log_odds_occupied),
     ]

@@ -73,6 +73,10 @@ async def test_twenty_seconds_in_each_harder_world(world: str) -> None:
         assert memory["standing_m2"] == round(
             float((mapper.memory.standing != 0).sum()) * mapper.grid.world_grid.cell_m**2, 2
         )
+        assert memory["driven_m2"] == round(
+            float((mapper.memory.driven != 0).sum()) * mapper.grid.world_grid.cell_m**2, 2
+        )
+        assert memory["driven_m2"] > 0  # it stands on its footprint from the first frame
         seen = mapper.memory.standing_seen()
         assert memory["standing_seen_m2"] == round(
             float(seen.sum()) * mapper.grid.world_grid.cell_m**2, 2
