@@ -225,7 +225,8 @@ def report(rt: Runtime) -> dict[str, Any]:
             "confirmed_m2": round(
                 float(mapper.memory.confirmed.sum()) * mapper.grid.world_grid.cell_m**2, 2
             ),
-            # Floor the robot's footprint covered (kept passable: `FloorMemory.driven`).
+            # Floor the robot's footprint covered (`FloorMemory.driven`; its track is
+            # passable with the body's clearance).
             "driven_m2": round(
                 float(np.count_nonzero(mapper.memory.driven)) * mapper.grid.world_grid.cell_m**2,
                 2,
