@@ -2,13 +2,14 @@
 """Explore every shipped world with several seeds and write docs/exploration.md.
 
     .venv/bin/python scripts/measure_exploration.py [--duration-s 300] [--seeds 0 1 2]
-        [--worlds two-rooms home office]
+        [--worlds two-rooms home office] [--keep-maps DIR]
 
 Each run is ``floornav run --world W --seed S --duration-s D --report R --map M``, one at
 a time (the runs measure latency: run them on a quiet machine). The reports go to
 docs/measurements/explore-W-sS.json, a bird's-eye picture of each world's final map
 beside its truth to docs/exploration/W-sS.png (scripts/render_map_truth.py), and the table
-to docs/exploration.md. ``--table-only`` rewrites the table from the reports there.
+to docs/exploration.md. ``--table-only`` rewrites the table from the reports there;
+``--keep-maps DIR`` keeps each run's map file in DIR to look into afterwards.
 """
 
 from __future__ import annotations
@@ -41,10 +42,15 @@ def build() -> str:
     return head + ("+dirty" if dirty else "")
 
 
-def run_one(world: str, seed: int, duration_s: float, commit: str) -> Path:
+def run_one(
+    world: str, seed: int, duration_s: float, commit: str, keep_maps: Path | None = None
+) -> Path:
     report = MEASUREMENTS / f"explore-{world}-s{seed}.json"
     with tempfile.TemporaryDirectory() as tmp:
-        map_path = Path(tmp) / "map.npz"
+        # Kept maps (with their ROS .pgm/.yaml) are for looking into a run afterwards:
+        # `scripts/render_map_truth.py`, or `app.mapping.map_files.load_map`.
+        folder = Path(tmp) if keep_maps is None else keep_maps
+        map_path = folder / ("map.npz" if keep_maps is None else f"explore-{world}-s{seed}.npz")
         command = [
             str(FLOORNAV),
             "run",
@@ -164,14 +170,22 @@ def main() -> int:
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument("--worlds", nargs="+", default=["two-rooms", "home", "office"])
     parser.add_argument("--table-only", action="store_true")
+    parser.add_argument(
+        "--keep-maps",
+        type=Path,
+        metavar="DIR",
+        help="also keep each run's map file here (explore-WORLD-sSEED.npz; not in docs/)",
+    )
     args = parser.parse_args()
     MEASUREMENTS.mkdir(parents=True, exist_ok=True)
+    if args.keep_maps is not None:
+        args.keep_maps.mkdir(parents=True, exist_ok=True)
     command = "scripts/measure_exploration.py " + " ".join(sys.argv[1:])
     if not args.table_only:
         commit = build()
         for world in args.worlds:
             for seed in args.seeds:
-                run_one(world, seed, args.duration_s, commit)
+                run_one(world, seed, args.duration_s, commit, args.keep_maps)
     (ROOT / "docs" / "exploration.md").write_text(table(command.strip()))
     return 0
 
