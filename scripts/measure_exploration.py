@@ -50,7 +50,7 @@ def run_one(
         # Kept maps (with their ROS .pgm/.yaml) are for looking into a run afterwards:
         # `scripts/render_map_truth.py`, or `app.mapping.map_files.load_map`.
         folder = Path(tmp) if keep_maps is None else keep_maps
-        map_path = folder / ("map.npz" if keep_maps is None else f"explore-{world}-s{seed}.npz")
+        map_path = folder / f"explore-{world}-s{seed}.npz"
         command = [
             str(FLOORNAV),
             "run",
