@@ -63,7 +63,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.fileio import write_bytes_atomic
-from app.mapping.floor_memory import FloorMemoryState
+from app.mapping.floor_memory import DRIVEN_FOOTPRINT, DRIVEN_TRACK, FloorMemoryState
 from app.mapping.frames import GroundGrid, Pose2D, describe_grid, same_geometry
 from app.mapping.occupancy import CLASSES, FREE, OCCUPIED, UNKNOWN, SavedMap
 
@@ -309,7 +309,7 @@ def _read_floor_memory(
             _uint8_layer(read, path, "seen_foot_marks", grid),
         )
     driven = _uint8_layer(read, path, "driven_floor", grid) if "driven_floor.npy" in names else None
-    if driven is not None and int(driven.max(initial=0)) > 3:
+    if driven is not None and (driven & ~np.uint8(DRIVEN_FOOTPRINT | DRIVEN_TRACK)).any():
         raise MapFileError(f"{path}: 'driven_floor' holds values above 3 (two bits per cell)")
     return FloorMemoryState(confirmed, np.asarray(table, dtype=np.float32), *marks, driven)
 
