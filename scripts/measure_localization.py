@@ -8,7 +8,7 @@ wheel-slip model; every frame is rendered, segmented by the shipped method and f
 the mapper at the odometry pose, corrected by the variant.
 
     .venv/bin/python scripts/measure_localization.py [--world two-rooms] [--seeds 0 1 2]
-        [--slip on off] [--localization wheels "scan matching" "floor odometry"]
+        [--slip on off] [--localization wheels "floor odometry" "floor odometry + axis"]
 
 prints one line per run and writes docs/measurements/localization.json and the table
 docs/localization.md.
@@ -104,9 +104,16 @@ def heading_error(pose: Pose2D, target: tuple[float, float]) -> tuple[float, flo
 
 LOCALIZATION = {
     # variant: the [mapping] switches it sets
-    "wheels": {"scan_matching": False, "floor_odometry": False},
-    "scan matching": {"scan_matching": True, "floor_odometry": False},
-    "floor odometry": {"scan_matching": False, "floor_odometry": True},
+    "wheels": {"scan_matching": False, "floor_odometry": False, "manhattan_heading": False},
+    "scan matching": {"scan_matching": True, "floor_odometry": False, "manhattan_heading": False},
+    "floor odometry": {"scan_matching": False, "floor_odometry": True, "manhattan_heading": False},
+    "axis": {"scan_matching": False, "floor_odometry": False, "manhattan_heading": True},
+    # shipped
+    "floor odometry + axis": {
+        "scan_matching": False,
+        "floor_odometry": True,
+        "manhattan_heading": True,
+    },
 }
 
 
@@ -121,6 +128,8 @@ class Tour:
     start: Pose2D
     errors: list[float]
     """Distance between the estimated and the true pose, every frame."""
+    heading_errors: list[float]
+    """Angle between the estimated and the true heading, every frame (radians, >= 0)."""
     tour_s: float
     finished: bool
     wall_s: float
@@ -147,6 +156,7 @@ def drive_tour(
         sim_floor_calibration(camera_model(config)), config.mapping, config.camera
     )
     errors: list[float] = []
+    heading_errors: list[float] = []
     t = 0.0
     spun = 0.0
     legs = list(legs)
@@ -198,6 +208,7 @@ def drive_tour(
         estimate = start.compose(odometry.pose)
         true = robot.pose
         errors.append(math.hypot(estimate.x_m - true.x_m, estimate.y_m - true.y_m))
+        heading_errors.append(abs(math.remainder(estimate.theta_rad - true.theta_rad, math.tau)))
     return Tour(
         renderer,
         robot,
@@ -205,10 +216,16 @@ def drive_tour(
         odometry,
         start,
         errors,
+        heading_errors,
         round(t, 1),
         not legs,
         round(time.perf_counter() - started, 1),
     )
+
+
+def percentile(values: list[float], share: float) -> float:
+    ordered = sorted(values)
+    return ordered[round(share * (len(ordered) - 1))]
 
 
 def run_tour(world: str, seed: int, localization: str, *, slip: bool = True) -> dict[str, object]:
@@ -222,7 +239,6 @@ def run_tour(world: str, seed: int, localization: str, *, slip: bool = True) -> 
     scores = map_truth_scores(
         classes, mapper.grid.world_grid, tour.start, tour.renderer.world
     ).as_dict()
-    ordered = sorted(errors)
     localizer = mapper.localizer
     return {
         "world": world,
@@ -234,9 +250,13 @@ def run_tour(world: str, seed: int, localization: str, *, slip: bool = True) -> 
         "distance_m": round(tour.odometry.distance_m, 2),
         "collisions": tour.robot.collisions,
         "pose_error_m": {
-            "p50": round(statistics.median(ordered), 3),
-            "p95": round(ordered[round(0.95 * (len(ordered) - 1))], 3),
+            "p50": round(statistics.median(errors), 3),
+            "p95": round(percentile(errors, 0.95), 3),
             "final": round(errors[-1], 3),
+        },
+        "heading_error_deg": {
+            "p50": round(math.degrees(statistics.median(tour.heading_errors)), 2),
+            "p95": round(math.degrees(percentile(tour.heading_errors, 0.95)), 2),
         },
         "map_iou": scores["map_iou"],
         "free_precision": scores.get("free_precision"),
@@ -247,13 +267,14 @@ def run_tour(world: str, seed: int, localization: str, *, slip: bool = True) -> 
         "floor_steps": None
         if not mapper.floor_odometry
         else {"attempts": mapper.floor_odometry_steps, "applied": mapper.floor_odometry_applied},
+        "heading_axis": None if mapper.heading_axis is None else mapper.heading_axis.summary(),
         "wall_s": tour.wall_s,
     }
 
 
 def main() -> int:
     parser = argparse.ArgumentParser(description=__doc__.splitlines()[0])
-    parser.add_argument("--world", default="two-rooms", choices=sorted(TOURS))
+    parser.add_argument("--worlds", nargs="+", default=["two-rooms"], choices=sorted(TOURS))
     parser.add_argument("--seeds", type=int, nargs="+", default=[0, 1, 2])
     parser.add_argument(
         "--slip",
@@ -273,15 +294,16 @@ def main() -> int:
     if str(args.doc) == "-":
         args.doc = None
     rows = []
-    for slip in args.slip:
-        for seed in args.seeds:
-            for localization in args.localization:
-                row = run_tour(args.world, seed, localization, slip=slip == "on")
-                rows.append(row)
-                print(json.dumps(row), flush=True)
+    for world in args.worlds:
+        for slip in args.slip:
+            for seed in args.seeds:
+                for localization in args.localization:
+                    row = run_tour(world, seed, localization, slip=slip == "on")
+                    rows.append(row)
+                    print(json.dumps(row), flush=True)
     args.out.parent.mkdir(parents=True, exist_ok=True)
-    command = "scripts/measure_localization.py --world {} --seeds {} --slip {}".format(
-        args.world, " ".join(map(str, args.seeds)), " ".join(args.slip)
+    command = "scripts/measure_localization.py --worlds {} --seeds {} --slip {}".format(
+        " ".join(args.worlds), " ".join(map(str, args.seeds)), " ".join(args.slip)
     )
     if args.localization != list(LOCALIZATION):
         command += " --localization " + " ".join(f'"{v}"' for v in args.localization)
@@ -299,19 +321,25 @@ def table(command: str, rows: list[dict[str, object]]) -> str:
         "simulated world (waypoints and full spin turns, driven by a controller that sees",
         "the true pose), every frame rendered, segmented by the shipped method and fused",
         "at the odometry pose, corrected by nothing (wheels), by scan matching against the",
-        "map (`[mapping] scan_matching`) or by the floor's motion between key frames",
-        "(`[mapping] floor_odometry`, shipped on).",
+        "map (`[mapping] scan_matching`), by the floor's motion between key frames",
+        "(`[mapping] floor_odometry`), by the building's axis (`[mapping]",
+        "manhattan_heading`: the heading held to the walls' straight feet), or by the",
+        "floor's motion and the axis together (shipped).",
         "Open loop, so every variant sees the same frames; the daemon's timing plays no part.",
         "",
         f"Command: `{command}`",
         "",
         "| world | seed | wheel slip | localization | pose error p50 / p95 / final m |"
-        " map IoU | occupied near truth | corrections applied / tried |",
-        "|---|---|---|---|---|---|---|---|",
+        " heading error p50 / p95 deg | map IoU | occupied near truth |"
+        " corrections applied / tried |",
+        "|---|---|---|---|---|---|---|---|---|",
     ]
     for r in rows:
-        pose = r["pose_error_m"]
+        pose, heading = r["pose_error_m"], r.get("heading_error_deg")
         assert isinstance(pose, dict)
+        turned = (
+            "-" if not isinstance(heading, dict) else f"{heading['p50']:.2f} / {heading['p95']:.2f}"
+        )
         matches = r["matches"] if r["matches"] is not None else r["floor_steps"]
         applied = (
             "-"
@@ -321,7 +349,7 @@ def table(command: str, rows: list[dict[str, object]]) -> str:
         lines.append(
             f"| {r['world']} | {r['seed']} | {'on' if r['slip'] else 'off'} |"
             f" {r['localization']} |"
-            f" {pose['p50']:.3f} / {pose['p95']:.3f} / {pose['final']:.3f} |"
+            f" {pose['p50']:.3f} / {pose['p95']:.3f} / {pose['final']:.3f} | {turned} |"
             f" {r['map_iou']:.3f} | {r['occupied_near_truth']:.3f} | {applied} |"
         )
     return "\n".join(lines) + "\n"

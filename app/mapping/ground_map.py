@@ -26,6 +26,7 @@ from app.mapping.frontiers import (
     stamp_disk,
 )
 from app.mapping.ipm import BirdseyeMap, birdseye_floor_patch, build_birdseye_map
+from app.mapping.manhattan import HeadingAxis, ManhattanParams, floor_edge_segments
 from app.mapping.occupancy import (
     OCCUPIED,
     OccupancyGrid,
@@ -169,8 +170,9 @@ class MapUpdate:
     corrected_cells: int = 0
     """Patch cells the colour method called not-floor that the memory knows are floor."""
     correction: Pose2D | None = None
-    """``T_corrected_odom`` when the frame's scan match corrected the pose (the frame was
-    fused at ``correction.compose(T_world_robot)``): left-multiply it onto odometry."""
+    """``T_corrected_odom`` when the frame's scan match or the building's axis
+    (`app.mapping.manhattan`) corrected the pose (the frame was fused at
+    ``correction.compose(T_world_robot)``): left-multiply it onto odometry."""
     match_s: float | None = None
     """Seconds the frame's scan match took (None: none ran)."""
     geometry_job: GeometryJob | None = None
@@ -563,6 +565,20 @@ class GroundMapper:
             if mapping.scan_matching
             else None
         )
+        self.heading_axis = (
+            HeadingAxis(
+                ManhattanParams(
+                    gate_rad=mapping.manhattan_gate_rad,
+                    line_sigma_rad=mapping.manhattan_line_sigma_rad,
+                )
+            )
+            if mapping.manhattan_heading
+            else None
+        )
+        """The building's axis and the heading corrections it gives (`app.mapping.manhattan`;
+        None: off)."""
+        self._axis_pose: Pose2D | None = None
+        """The pose of the last frame the axis read (its travel since widens the gate)."""
 
     def update(
         self,
@@ -878,15 +894,48 @@ class GroundMapper:
         T_world_robot: Pose2D,
         now_s: float,
     ) -> Pose2D | None:
-        """Floor odometry for a frame `update` has fused at ``T_world_robot``:
-        ``T_corrected_odom`` to left-multiply onto odometry, or None (off, not due, or
-        the floors did not line up; `floor_odometry_steps` counts the frames compared).
-        Called after the frame's map is out, so the step (~5 ms) is not on the way to
-        the motors; the frame itself stays fused at its odometry pose, off by at most
-        one step's slip."""
-        if not self.floor_odometry:
-            return None
-        return self._floor_odometry(image, floor_mask, T_world_robot, now_s)
+        """Floor odometry, then the building's axis, for a frame `update` has fused at
+        ``T_world_robot``: ``T_corrected_odom`` to left-multiply onto odometry, or None
+        (both off, neither due, the floors did not line up and no straight edge near the
+        axis; `floor_odometry_steps` counts the frames compared). Called after the
+        frame's map is out, so the steps (~5 ms, ~1-2 ms) are not on the way to the
+        motors; the frame itself stays fused at its odometry pose, off by at most one
+        step's slip."""
+        step = (
+            self._floor_odometry(image, floor_mask, T_world_robot, now_s)
+            if self.floor_odometry
+            else None
+        )
+        if self.heading_axis is None:
+            return step
+        pose = T_world_robot if step is None else step.compose(T_world_robot)
+        last, self._axis_pose = self._axis_pose, pose
+        # The key frame's floors lined up last time: floor odometry holds the heading
+        # to hundredths of a degree, better than any line (and lines off the floor plane,
+        # a box's top edge seen over many frames, would pull it): the axis only learns.
+        floor_held = self.floor_odometry and self._key_misses == 0
+        if last is not None:
+            self.heading_axis.moved(
+                math.hypot(pose.x_m - last.x_m, pose.y_m - last.y_m),
+                math.remainder(pose.theta_rad - last.theta_rad, math.tau),
+                floor_held=floor_held,
+            )
+        turn = self.heading_axis.observe(
+            floor_edge_segments(
+                _gray(image),
+                floor_mask,
+                self.calibration.H_ground_from_image,
+                self.heading_axis.params,
+            ),
+            pose.theta_rad,
+            may_correct=not floor_held,
+        )
+        if turn is None:
+            return step
+        # About the robot's own position: the heading was off, not the place.
+        spin = Pose2D(pose.x_m, pose.y_m, turn).compose(Pose2D(-pose.x_m, -pose.y_m, 0.0))
+        self._move_views(spin)
+        return spin if step is None else spin.compose(step)
 
     def _floor_odometry(
         self, image: NDArray[np.uint8], floor_mask: NDArray[np.bool_], pose: Pose2D, now_s: float
@@ -992,6 +1041,11 @@ class GroundMapper:
         ]
         self._views.clear()
         self._views.extend(views)
+        key = self._keyframe
+        if key is not None and key.time_s > after_s:
+            # Floor odometry compares the next frame with the key at this pose.
+            moved = _moved(key.pose, T_corrected_odom)
+            self._keyframe = key._replace(pose=moved, cam=_camera_xy(moved, self.camera_xy_robot))
         self._confirmed = _carry_moved(self._confirmed, T_corrected_odom, after_s)
         self._cut = _carry_moved(self._cut, T_corrected_odom, after_s)
         self._wall_cut = _carry_moved(self._wall_cut, T_corrected_odom, after_s)
@@ -1022,6 +1076,10 @@ class GroundMapper:
         self._confirmed = None
         self._cut = None
         self._wall_cut = None
+        if self.heading_axis is not None:
+            # The saved pose's heading is as good as it was; the axis is learned again.
+            self.heading_axis.restore(None)
+            self._axis_pose = None
 
     def _cut_behind_standing(
         self, floor_mask: NDArray[np.bool_], here: tuple[float, float, float], now_s: float

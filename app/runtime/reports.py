@@ -258,6 +258,9 @@ def report(rt: Runtime) -> dict[str, Any]:
         "floor_odometry": None
         if mapper is None or not mapper.floor_odometry
         else {"steps": mapper.floor_odometry_steps, "applied": mapper.floor_odometry_applied},
+        "heading_axis": None
+        if mapper is None or mapper.heading_axis is None
+        else mapper.heading_axis.summary(),
         "scan_match": None
         if mapper is None or mapper.localizer is None
         else {"attempts": mapper.localizer.attempts, "applied": mapper.localizer.applied},

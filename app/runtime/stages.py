@@ -558,7 +558,8 @@ class MappingStage:
     async def _follow_floor(
         self, mapper: GroundMapper, floor: FloorMsg, pose: Pose2D, *, newer_waiting: bool
     ) -> None:
-        """Floor odometry for the frame just mapped at ``pose``, on the mapping thread but
+        """Floor odometry and the building's axis (`GroundMapper.follow_floor`) for the
+        frame just mapped at ``pose``, on the mapping thread but
         off the motors' path (its map is already out), its correction onto odometry at
         once: the pose of every later frame needs it, so it does not wait behind the
         background work (there, on a quiet machine, steps arrived 85 ms late at the
@@ -566,7 +567,7 @@ class MappingStage:
         mapped (the key frame is then compared with a later one), but at most
         `FOLLOW_FLOOR_MAX_DEFERRED` frames in a row."""
         shared = self.shared
-        if not mapper.floor_odometry:
+        if not mapper.floor_odometry and mapper.heading_axis is None:
             return
         if newer_waiting and self._floor_deferred < FOLLOW_FLOOR_MAX_DEFERRED:
             self._floor_deferred += 1

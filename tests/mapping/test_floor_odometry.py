@@ -19,7 +19,8 @@ CONFIG = Path(__file__).resolve().parents[2] / "config.toml"
 
 
 def mapper_and_renderer(**mapping: object) -> tuple[GroundMapper, object]:
-    config = load_config(CONFIG, mapping=mapping)
+    # Floor odometry alone: the building's axis (`test_manhattan.py`) corrects headings too.
+    config = load_config(CONFIG, mapping={"manhattan_heading": False, **mapping})
     mapper = GroundMapper(
         sim_floor_calibration(camera_model(config)), config.mapping, config.camera
     )

@@ -1,0 +1,316 @@
+"""Heading held by the building's straight lines (a Manhattan-world constraint).
+
+Wheel odometry's heading drifts (one tyre a percent larger turns the estimate about a
+degree a second at cruise speed), and floor odometry cannot stop it where the floor has
+no texture of its own (a polished corridor, whose only texture is reflections that move
+unlike the floor). Walls, cupboards and the boxes against them mostly run along two
+perpendicular directions, and their feet are straight lines on the floor that the camera
+sees wherever it looks: the floor's edge. Their direction in the world is fixed, so the
+direction seen from the robot gives the robot's heading, modulo a quarter turn.
+
+`floor_edge_segments` finds those lines: image edges (Canny) along the colour floor's
+boundary, joined into segments (probabilistic Hough, the thesis's junction tools), put
+on the floor through the floor homography. `HeadingAxis` learns the building's axis
+from the first lines seen (odometry has not drifted yet) and then reads, in every frame
+with lines close to the axis, how far the heading has turned off it; a small Kalman
+filter weighs that against how far odometry may have drifted since. Lines further off
+than the filter expects (a diagonal wall, a box turned on the floor, a curved sofa) are
+not used, so a building that is not rectilinear corrects nothing rather than something
+wrong; a line a degree or two off the axis pulls the heading by part of that while only
+it is in view.
+
+Pure functions and a small state on numpy arrays; no I/O.
+"""
+
+from __future__ import annotations
+
+import functools
+import math
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+from numpy.typing import NDArray
+
+
+@dataclass(frozen=True)
+class ManhattanParams:
+    """How `floor_edge_segments` finds the floor's straight edges and `HeadingAxis` uses
+    them.
+
+    Attributes
+    ----------
+    band_px : image edges count only this close (a square window) to the colour floor's
+        boundary: the boundary itself is as coarse as the mask, the edge is exact.
+    canny_low, canny_high : Canny hysteresis thresholds (grey levels).
+    hough_votes, min_segment_px, max_gap_px : ``cv2.HoughLinesP`` threshold, shortest
+        segment and largest gap, in pixels.
+    max_range_m : segments reaching further from the robot are not used (the floor
+        homography magnifies a pixel's error with distance).
+    min_length_m : shorter segments on the floor are not used.
+    learn_length_m : segment length, summed over frames, needed to fix the axis.
+    learn_window_rad, learn_agreement : the axis is fixed where this wide a window either
+        side of a direction (modulo a quarter turn) holds this share of that length.
+    gate_rad : segments further than this from the axis (modulo a quarter turn) are never
+        used to correct, however uncertain the heading...
+    min_gate_rad : ...and those this close always are (see `HeadingAxis.observe`).
+    gate_sigmas : the gate in between: this many times the offset's expected spread.
+    min_frame_length_m : a frame corrects only with at least this much segment length
+        inside the gate.
+    line_sigma_rad : one frame's measurement noise (the segments' median direction on
+        the floor, `scripts/measure_localization.py`: about a degree).
+    start_sigma_rad : the heading's uncertainty once the axis is fixed.
+    drift_rad2_per_m, drift_rad2_per_rad : the heading's variance added by a metre of
+        travel and a radian of turn (odometry's drift as a random walk: about a degree
+        a metre, unequal tyres, and a degree a radian, slip in spin turns).
+    floor_drift_share : of that variance, the share left where floor odometry holds the
+        motion (a tenth of the wheels' drift: it keeps headings to a few hundredths of a
+        degree a step).
+    """
+
+    band_px: int = 9
+    canny_low: int = 40
+    canny_high: int = 120
+    hough_votes: int = 30
+    min_segment_px: int = 30
+    max_gap_px: int = 4
+    max_range_m: float = 3.0
+    min_length_m: float = 0.5
+    learn_length_m: float = 20.0
+    learn_window_rad: float = math.radians(1.5)
+    learn_agreement: float = 0.5
+    gate_rad: float = math.radians(6.0)
+    min_gate_rad: float = math.radians(1.5)
+    gate_sigmas: float = 2.5
+    min_frame_length_m: float = 0.5
+    line_sigma_rad: float = math.radians(1.5)
+    start_sigma_rad: float = math.radians(1.0)
+    drift_rad2_per_m: float = math.radians(1.0) ** 2
+    drift_rad2_per_rad: float = math.radians(1.0) ** 2
+    floor_drift_share: float = 0.01
+
+
+def floor_edge_segments(
+    gray: NDArray[np.uint8],
+    floor_mask: NDArray[np.bool_],
+    H_ground_from_image: NDArray[np.float64],
+    params: ManhattanParams | None = None,
+) -> NDArray[np.float64]:
+    """Straight edges of the floor, on the floor, in the robot frame.
+
+    Parameters
+    ----------
+    gray : (H, W) uint8 image.
+    floor_mask : (H, W) bool, True = floor (any segmentation).
+    H_ground_from_image : 3x3, image pixel (u, v, 1) -> robot-frame floor point (x_m,
+        y_m; x ahead, y left).
+    params : see `ManhattanParams`.
+
+    Returns
+    -------
+    (n, 2) float64: each segment's direction in the robot frame (radians, in
+    [-pi/2, pi/2): a line has no sense) and its length in metres on the floor. Segments
+    touching the image's border (the view's edge, not the floor's) are not found.
+    """
+    p = params if params is not None else ManhattanParams()
+    if gray.shape != floor_mask.shape:
+        raise ValueError(f"image {gray.shape} and floor mask {floor_mask.shape} differ")
+    mask = np.ascontiguousarray(floor_mask, np.uint8)
+    square = np.ones((3, 3), np.uint8)
+    boundary = mask ^ np.asarray(cv2.erode(mask, square, borderValue=1), np.uint8)
+    near = cv2.dilate(boundary, np.ones((p.band_px, p.band_px), np.uint8))
+    edges = cv2.Canny(gray, p.canny_low, p.canny_high)
+    edges[near == 0] = 0
+    # Edge pixels beyond the range go before the lines are joined: a wall's foot running
+    # off towards the horizon still gives its near part.
+    edges[~_within_range(_key(H_ground_from_image), gray.shape, p.max_range_m)] = 0
+    edges[:2, :] = 0
+    edges[-2:, :] = 0
+    edges[:, :2] = 0
+    edges[:, -2:] = 0
+    found = cv2.HoughLinesP(
+        edges,
+        1.0,
+        math.pi / 360.0,
+        p.hough_votes,
+        minLineLength=p.min_segment_px,
+        maxLineGap=p.max_gap_px,
+    )
+    if found is None:
+        return np.zeros((0, 2), np.float64)
+    ends = np.asarray(found, np.float64).reshape(-1, 4)
+    # Both ends of every segment onto the floor at once.
+    pixels = np.stack(
+        [
+            np.concatenate([ends[:, 0], ends[:, 2]]),
+            np.concatenate([ends[:, 1], ends[:, 3]]),
+            np.ones(2 * len(ends)),
+        ]
+    )
+    ground = np.asarray(H_ground_from_image, np.float64) @ pixels
+    n = len(ends)
+    w = ground[2]
+    ahead = (w[:n] > 0) & (w[n:] > 0)  # both ends below the horizon
+    w = np.where(w > 0, w, 1.0)
+    x, y = ground[0] / w, ground[1] / w
+    dx, dy = x[n:] - x[:n], y[n:] - y[:n]
+    length = np.hypot(dx, dy)
+    reach = np.maximum(np.hypot(x[:n], y[:n]), np.hypot(x[n:], y[n:]))
+    # A pixel's worth of slack: the ends are where Hough put them, near kept pixels.
+    keep = ahead & (reach <= 1.05 * p.max_range_m) & (length >= p.min_length_m)
+    direction = np.arctan2(dy[keep], dx[keep])
+    # A line's direction modulo a half turn, in [-pi/2, pi/2).
+    direction = (direction + math.pi / 2) % math.pi - math.pi / 2
+    return np.stack([direction, length[keep]], axis=1)
+
+
+def _key(H: NDArray[np.float64]) -> tuple[float, ...]:
+    return tuple(float(v) for v in np.asarray(H, np.float64).ravel())
+
+
+@functools.lru_cache(maxsize=4)
+def _within_range(
+    H_key: tuple[float, ...], shape: tuple[int, ...], max_range_m: float
+) -> NDArray[np.bool_]:
+    """(H, W) bool: pixels below the horizon whose floor point is within ``max_range_m``
+    of the robot (one per homography and image size: the camera does not move on it)."""
+    H = np.array(H_key, np.float64).reshape(3, 3)
+    v, u = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
+    ground = np.tensordot(H, np.stack([u, v, np.ones_like(u)]), axes=1)
+    w = ground[2]
+    safe = np.where(w > 0, w, 1.0)
+    inside = (w > 0) & (np.hypot(ground[0] / safe, ground[1] / safe) <= max_range_m)
+    inside.setflags(write=False)
+    return np.asarray(inside, np.bool_)
+
+
+def quarter_turn_offset(
+    angle_rad: NDArray[np.float64] | float, axis_rad: float
+) -> NDArray[np.float64]:
+    """How far each angle is from the axis or a multiple of a quarter turn off it, in
+    [-pi/4, pi/4)."""
+    quarter = math.pi / 2
+    return np.asarray((np.asarray(angle_rad) - axis_rad + quarter / 2) % quarter - quarter / 2)
+
+
+_LEARN_KEPT = 400
+"""Segments kept while learning the axis (the latest: odometry drifts meanwhile)."""
+
+
+def _weighted_median(values: NDArray[np.float64], weights: NDArray[np.float64]) -> float:
+    order = np.argsort(values)
+    cumulative = np.cumsum(weights[order])
+    return float(values[order][np.searchsorted(cumulative, cumulative[-1] / 2.0)])
+
+
+class HeadingAxis:
+    """The building's axis in the world frame, learned once, and the heading corrections
+    it gives (see the module docstring).
+
+    Attributes
+    ----------
+    axis_rad : the axis (modulo a quarter turn), None until learned.
+    frames_used : frames that had segments inside the gate (corrections made).
+    """
+
+    def __init__(self, params: ManhattanParams | None = None) -> None:
+        self.params = params if params is not None else ManhattanParams()
+        self.axis_rad: float | None = None
+        self.frames_used = 0
+        self.variance_rad2 = self.params.start_sigma_rad**2
+        """The heading's variance about the axis (radians squared)."""
+        self._learning: list[tuple[float, float]] = []
+        """(direction modulo a quarter turn, length) of the segments seen while
+        learning."""
+
+    def moved(self, distance_m: float, turn_rad: float, *, floor_held: bool = False) -> None:
+        """Odometry moved the robot: the heading is that much less certain (a random
+        walk, ``drift_rad2_per_m`` and ``drift_rad2_per_rad``; ``floor_held``: floor
+        odometry lined the floors up over this motion, which leaves
+        ``floor_drift_share`` of the wheels' drift)."""
+        p = self.params
+        share = p.floor_drift_share if floor_held else 1.0
+        self.variance_rad2 += share * p.drift_rad2_per_m * abs(distance_m)
+        self.variance_rad2 += share * p.drift_rad2_per_rad * abs(turn_rad)
+
+    def observe(
+        self, segments: NDArray[np.float64], heading_rad: float, *, may_correct: bool = True
+    ) -> float | None:
+        """One frame's `floor_edge_segments` seen at the estimated ``heading_rad``: the
+        heading correction (radians, to add to the heading), or None (no axis yet, no
+        segment near it, or not ``may_correct``: the segments only teach the axis).
+
+        A one-state Kalman filter on the heading's offset from the axis: the frame's
+        measurement is its segments' length-weighted median offset (noise
+        ``line_sigma_rad``), over those inside the gate: ``gate_sigmas`` times the
+        offset's expected spread (the heading's uncertainty and the line's), within
+        [``min_gate_rad``, ``gate_rad``]. A heading that odometry keeps well (floor
+        odometry) keeps the gate narrow, so a box a few degrees askew is not taken for a
+        wall; the gain falls as the heading becomes certain, so one frame's stray line
+        moves it little."""
+        p = self.params
+        if len(segments) == 0:
+            return None
+        world = segments[:, 0] + heading_rad
+        length = segments[:, 1]
+        if self.axis_rad is None:
+            self._learn(world, length)
+            return None
+        if not may_correct:
+            return None
+        offset = quarter_turn_offset(world, self.axis_rad)
+        spread = math.sqrt(self.variance_rad2 + p.line_sigma_rad**2)
+        gate = min(max(p.gate_sigmas * spread, p.min_gate_rad), p.gate_rad)
+        near = np.abs(offset) <= gate
+        if float(length[near].sum()) < p.min_frame_length_m:
+            return None
+        self.frames_used += 1
+        gain = self.variance_rad2 / (self.variance_rad2 + p.line_sigma_rad**2)
+        self.variance_rad2 *= 1.0 - gain
+        return -gain * _weighted_median(offset[near], length[near])
+
+    def _learn(self, world_rad: NDArray[np.float64], length: NDArray[np.float64]) -> None:
+        """Keep the segments' directions modulo a quarter turn; once they hold
+        ``learn_length_m``, fix the axis at the densest direction if +-
+        ``learn_window_rad`` around it holds ``learn_agreement`` of the length (the
+        axis: their length-weighted median there). Until then, and while no direction
+        stands out, keep adding: odometry drifts slowly, and a few stray lines (a door's
+        edge, a reflection) make no peak."""
+        p = self.params
+        self._learning.extend(
+            zip(quarter_turn_offset(world_rad, 0.0).tolist(), length.tolist(), strict=True)
+        )
+        seen = np.array(self._learning, np.float64)
+        total = float(seen[:, 1].sum())
+        if total < p.learn_length_m:
+            return
+        best_centre, best_share = 0.0, -1.0
+        for centre in seen[:, 0]:
+            near = np.abs(quarter_turn_offset(seen[:, 0], float(centre))) <= p.learn_window_rad
+            share = float(seen[near, 1].sum()) / total
+            if share > best_share:
+                best_centre, best_share = float(centre), share
+        if best_share < p.learn_agreement:
+            if len(self._learning) > _LEARN_KEPT:
+                del self._learning[: len(self._learning) - _LEARN_KEPT]
+            return
+        offsets = quarter_turn_offset(seen[:, 0], best_centre)
+        near = np.abs(offsets) <= p.learn_window_rad
+        middle = _weighted_median(offsets[near], seen[near, 1])
+        self.axis_rad = float(quarter_turn_offset(best_centre + middle, 0.0))
+        self.variance_rad2 = p.start_sigma_rad**2
+        self._learning.clear()
+
+    def summary(self) -> dict[str, float | int | None]:
+        """For the run report: the axis in degrees (None: not learned) and the frames
+        that corrected the heading."""
+        return {
+            "axis_deg": None if self.axis_rad is None else round(math.degrees(self.axis_rad), 2),
+            "corrections": self.frames_used,
+        }
+
+    def restore(self, axis_rad: float | None) -> None:
+        """Continue with an axis learned before (a loaded map's), or learn it again."""
+        self.axis_rad = axis_rad
+        self.variance_rad2 = self.params.start_sigma_rad**2
+        self._learning.clear()
