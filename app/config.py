@@ -256,8 +256,9 @@ class MappingConfig(StrictModel):
     odometry's drift about a degree a metre). Odometry's heading drift (a degree a
     second with unequal tyres, uncorrected by floor odometry on a floor without texture)
     would otherwise smear the map. Lines further than ``manhattan_gate_rad`` off the
-    axis are never used: in a building that is not rectilinear it does nothing. ~1-2 ms
-    a frame (Canny, Hough; OpenCV, nogil), off the motors' path."""
+    axis are never used: in a building that is not rectilinear it does nothing. ~2-6 ms
+    a frame (Canny, Hough; OpenCV, nogil), off the motors' path, only while the axis is
+    learned or floor odometry misses (where it holds, it holds the heading better)."""
     manhattan_gate_rad: Annotated[float, Field(gt=0.0, le=0.3)] = 0.105
     manhattan_line_sigma_rad: Annotated[float, Field(gt=0.0, le=0.2)] = 0.026
 

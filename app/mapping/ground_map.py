@@ -898,9 +898,9 @@ class GroundMapper:
         ``T_world_robot``: ``T_corrected_odom`` to left-multiply onto odometry, or None
         (both off, neither due, the floors did not line up and no straight edge near the
         axis; `floor_odometry_steps` counts the frames compared). Called after the
-        frame's map is out, so the steps (~5 ms, ~1-2 ms) are not on the way to the
-        motors; the frame itself stays fused at its odometry pose, off by at most one
-        step's slip."""
+        frame's map is out, so the steps (~5 ms; the axis's ~2-6 ms, only while it
+        learns or floor odometry misses) are not on the way to the motors; the frame
+        itself stays fused at its odometry pose, off by at most one step's slip."""
         step = (
             self._floor_odometry(image, floor_mask, T_world_robot, now_s)
             if self.floor_odometry
@@ -920,6 +920,8 @@ class GroundMapper:
                 math.remainder(pose.theta_rad - last.theta_rad, math.tau),
                 floor_held=floor_held,
             )
+        if floor_held and self.heading_axis.axis_rad is not None:
+            return step  # nothing to learn, nothing to correct: the lines are not looked for
         turn = self.heading_axis.observe(
             floor_edge_segments(
                 _gray(image),
