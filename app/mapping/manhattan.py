@@ -11,8 +11,10 @@ direction seen from the robot gives the robot's heading, modulo a quarter turn.
 `floor_edge_segments` finds those lines: image edges (Canny) along the colour floor's
 boundary, joined into segments (probabilistic Hough, the thesis's junction tools), put
 on the floor through the floor homography. `HeadingAxis` learns the building's axis
-from the first lines seen (odometry has not drifted yet) and then reads, in every frame
-with lines close to the axis, how far the heading has turned off it; a small Kalman
+from the first lines seen (odometry has not drifted yet) and then reads, in each frame
+it is handed with lines close to the axis, how far the heading has turned off it (the
+mapper hands it the frames where floor odometry missed: `GroundMapper.follow_floor`);
+a small Kalman
 filter weighs that against how far odometry may have drifted since. Lines further off
 than the filter expects (a diagonal wall, a box turned on the floor, a curved sofa) are
 not used, so a building that is not rectilinear corrects nothing rather than something
@@ -284,12 +286,12 @@ class HeadingAxis:
         total = float(seen[:, 1].sum())
         if total < p.learn_length_m:
             return
-        best_centre, best_share = 0.0, -1.0
-        for centre in seen[:, 0]:
-            near = np.abs(quarter_turn_offset(seen[:, 0], float(centre))) <= p.learn_window_rad
-            share = float(seen[near, 1].sum()) / total
-            if share > best_share:
-                best_centre, best_share = float(centre), share
+        # Every segment's direction as a candidate: the length within the window of each.
+        pairwise = seen[:, 0][:, None] - seen[:, 0][None, :]
+        within = np.abs(quarter_turn_offset(pairwise, 0.0)) <= p.learn_window_rad
+        around = within @ seen[:, 1]
+        best = int(np.argmax(around))
+        best_centre, best_share = float(seen[best, 0]), float(around[best]) / total
         if best_share < p.learn_agreement:
             if len(self._learning) > _LEARN_KEPT:
                 del self._learning[: len(self._learning) - _LEARN_KEPT]
