@@ -251,14 +251,15 @@ class MappingConfig(StrictModel):
     manhattan_heading: bool = True
     """Hold the heading to the building's axis (`app.mapping.manhattan`): walls and the
     furniture along them meet the floor in straight lines along two square directions;
-    the first seen fix the axis, and each frame with such a line near the axis corrects
-    the heading by a small Kalman filter (a line's noise ``manhattan_line_sigma_rad``,
-    odometry's drift about a degree a metre). Odometry's heading drift (a degree a
-    second with unequal tyres, uncorrected by floor odometry on a floor without texture)
-    would otherwise smear the map. Lines further than ``manhattan_gate_rad`` off the
-    axis are never used: in a building that is not rectilinear it does nothing. ~2-6 ms
-    a frame (Canny, Hough; OpenCV, nogil), off the motors' path, only while the axis is
-    learned or floor odometry misses (where it holds, it holds the heading better)."""
+    the first seen fix the axis, and where floor odometry missed its last step, each
+    frame with such a line near the axis corrects the heading by a small Kalman filter
+    (a line's noise ``manhattan_line_sigma_rad``, odometry's drift about a degree a
+    metre). Odometry's heading drift (a degree a second with unequal tyres, uncorrected
+    by floor odometry on a floor without texture) would otherwise smear the map. Lines
+    further than ``manhattan_gate_rad`` off the axis are never used: in a building that
+    is not rectilinear it does nothing. ~2-6 ms a frame (Canny, Hough; OpenCV, nogil),
+    off the motors' path, only while the axis is learned or floor odometry misses (where
+    it holds, it holds the heading better)."""
     manhattan_gate_rad: Annotated[float, Field(gt=0.0, le=0.3)] = 0.105
     manhattan_line_sigma_rad: Annotated[float, Field(gt=0.0, le=0.2)] = 0.026
 

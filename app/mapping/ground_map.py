@@ -170,9 +170,8 @@ class MapUpdate:
     corrected_cells: int = 0
     """Patch cells the colour method called not-floor that the memory knows are floor."""
     correction: Pose2D | None = None
-    """``T_corrected_odom`` when the frame's scan match or the building's axis
-    (`app.mapping.manhattan`) corrected the pose (the frame was fused at
-    ``correction.compose(T_world_robot)``): left-multiply it onto odometry."""
+    """``T_corrected_odom`` when the frame's scan match corrected the pose (the frame was
+    fused at ``correction.compose(T_world_robot)``): left-multiply it onto odometry."""
     match_s: float | None = None
     """Seconds the frame's scan match took (None: none ran)."""
     geometry_job: GeometryJob | None = None
@@ -1026,10 +1025,11 @@ class GroundMapper:
         return found.T_corrected_odom, time.perf_counter() - start_s
 
     def _move_views(self, T_corrected_odom: Pose2D, after_s: float = -math.inf) -> None:
-        """Move the poses of the frames kept for the parallax test, taken after
-        ``after_s``, with a correction, as odometry's history moves: the relative poses
-        between those frames stay odometry's. (Floor odometry moves only the frames
-        since its key frame: the ones before were not part of the slip it found.)"""
+        """Move the poses of the frames kept for the parallax test and of floor
+        odometry's key frame, taken after ``after_s``, with a correction, as odometry's
+        history moves: the relative poses between those frames stay odometry's. (Floor
+        odometry moves only the frames since its key frame: the ones before were not
+        part of the slip it found.)"""
         self._corrections.append((T_corrected_odom, after_s))
         self._corrections_made += 1
         views = [
