@@ -25,7 +25,12 @@ from app.mapping.frontiers import (
     inflate_obstacles,
     stamp_disk,
 )
-from app.mapping.ipm import BirdseyeMap, birdseye_floor_patch, build_birdseye_map
+from app.mapping.ipm import (
+    BirdseyeMap,
+    birdseye_floor_patch,
+    build_birdseye_map,
+    build_ground_lookup,
+)
 from app.mapping.manhattan import HeadingAxis, ManhattanParams, floor_edge_segments
 from app.mapping.occupancy import (
     OCCUPIED,
@@ -578,6 +583,14 @@ class GroundMapper:
         None: off)."""
         self._axis_pose: Pose2D | None = None
         """The pose of the last frame the axis read (its travel since widens the gate)."""
+        self._axis_range_px = (
+            None
+            if self.heading_axis is None
+            else build_ground_lookup(
+                calibration, max_range_m=self.heading_axis.params.max_range_m
+            ).valid
+        )
+        """Pixels whose floor point is near enough for the axis's lines."""
 
     def update(
         self,
@@ -921,11 +934,15 @@ class GroundMapper:
             )
         if floor_held and self.heading_axis.axis_rad is not None:
             return step  # nothing to learn, nothing to correct: the lines are not looked for
+        assert self._axis_range_px is not None
+        if floor_mask.shape != self._axis_range_px.shape:
+            return step  # frames of another size than calibrated: no floor lines to trust
         turn = self.heading_axis.observe(
             floor_edge_segments(
                 _gray(image),
                 floor_mask,
-                self.calibration.H_ground_from_image,
+                self.calibration,
+                self._axis_range_px,
                 self.heading_axis.params,
             ),
             pose.theta_rad,

@@ -26,13 +26,14 @@ Pure functions and a small state on numpy arrays; no I/O.
 
 from __future__ import annotations
 
-import functools
 import math
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 from numpy.typing import NDArray
+
+from app.mapping.calibration import FloorCalibration
 
 
 @dataclass(frozen=True)
@@ -95,7 +96,8 @@ class ManhattanParams:
 def floor_edge_segments(
     gray: NDArray[np.uint8],
     floor_mask: NDArray[np.bool_],
-    H_ground_from_image: NDArray[np.float64],
+    calibration: FloorCalibration,
+    within_range: NDArray[np.bool_],
     params: ManhattanParams | None = None,
 ) -> NDArray[np.float64]:
     """Straight edges of the floor, on the floor, in the robot frame.
@@ -104,8 +106,12 @@ def floor_edge_segments(
     ----------
     gray : (H, W) uint8 image.
     floor_mask : (H, W) bool, True = floor (any segmentation).
-    H_ground_from_image : 3x3, image pixel (u, v, 1) -> robot-frame floor point (x_m,
-        y_m; x ahead, y left).
+    calibration : the floor calibration (`FloorCalibration.image_to_ground`; a lens model
+        is undone).
+    within_range : (H, W) bool, the pixels whose floor point is within
+        ``params.max_range_m`` (`app.mapping.ipm.build_ground_lookup`'s ``valid``, built
+        once for the camera): the floor homography magnifies a pixel's error with
+        distance.
     params : see `ManhattanParams`.
 
     Returns
@@ -115,17 +121,19 @@ def floor_edge_segments(
     touching the image's border (the view's edge, not the floor's) are not found.
     """
     p = params if params is not None else ManhattanParams()
-    if gray.shape != floor_mask.shape:
-        raise ValueError(f"image {gray.shape} and floor mask {floor_mask.shape} differ")
+    if not gray.shape == floor_mask.shape == within_range.shape:
+        raise ValueError(
+            f"image {gray.shape}, floor mask {floor_mask.shape} and range mask"
+            f" {within_range.shape} differ"
+        )
     mask = np.ascontiguousarray(floor_mask, np.uint8)
     square = np.ones((3, 3), np.uint8)
     boundary = mask ^ np.asarray(cv2.erode(mask, square, borderValue=1), np.uint8)
     near = cv2.dilate(boundary, np.ones((p.band_px, p.band_px), np.uint8))
     edges = cv2.Canny(gray, p.canny_low, p.canny_high)
-    edges[near == 0] = 0
     # Edge pixels beyond the range go before the lines are joined: a wall's foot running
     # off towards the horizon still gives its near part.
-    edges[~_within_range(_key(H_ground_from_image), gray.shape, p.max_range_m)] = 0
+    edges[(near == 0) | ~within_range] = 0
     edges[:2, :] = 0
     edges[-2:, :] = 0
     edges[:, :2] = 0
@@ -141,49 +149,20 @@ def floor_edge_segments(
     if found is None:
         return np.zeros((0, 2), np.float64)
     ends = np.asarray(found, np.float64).reshape(-1, 4)
-    # Both ends of every segment onto the floor at once.
-    pixels = np.stack(
-        [
-            np.concatenate([ends[:, 0], ends[:, 2]]),
-            np.concatenate([ends[:, 1], ends[:, 3]]),
-            np.ones(2 * len(ends)),
-        ]
-    )
-    ground = np.asarray(H_ground_from_image, np.float64) @ pixels
+    # Both ends of every segment onto the floor at once (NaN above the horizon).
+    ground = calibration.image_to_ground(np.concatenate([ends[:, :2], ends[:, 2:]]))
     n = len(ends)
-    w = ground[2]
-    ahead = (w[:n] > 0) & (w[n:] > 0)  # both ends below the horizon
-    w = np.where(w > 0, w, 1.0)
-    x, y = ground[0] / w, ground[1] / w
-    dx, dy = x[n:] - x[:n], y[n:] - y[:n]
-    length = np.hypot(dx, dy)
-    reach = np.maximum(np.hypot(x[:n], y[:n]), np.hypot(x[n:], y[n:]))
-    # A pixel's worth of slack: the ends are where Hough put them, near kept pixels.
-    keep = ahead & (reach <= 1.05 * p.max_range_m) & (length >= p.min_length_m)
-    direction = np.arctan2(dy[keep], dx[keep])
+    start, stop = ground[:n], ground[n:]
+    delta = stop - start
+    length = np.hypot(delta[:, 0], delta[:, 1])
+    reach = np.maximum(np.hypot(*start.T), np.hypot(*stop.T))
+    with np.errstate(invalid="ignore"):
+        # A pixel's worth of slack: the ends are where Hough put them, near kept pixels.
+        keep = (reach <= 1.05 * p.max_range_m) & (length >= p.min_length_m)
+    direction = np.arctan2(delta[keep, 1], delta[keep, 0])
     # A line's direction modulo a half turn, in [-pi/2, pi/2).
     direction = (direction + math.pi / 2) % math.pi - math.pi / 2
     return np.stack([direction, length[keep]], axis=1)
-
-
-def _key(H: NDArray[np.float64]) -> tuple[float, ...]:
-    return tuple(float(v) for v in np.asarray(H, np.float64).ravel())
-
-
-@functools.lru_cache(maxsize=4)
-def _within_range(
-    H_key: tuple[float, ...], shape: tuple[int, ...], max_range_m: float
-) -> NDArray[np.bool_]:
-    """(H, W) bool: pixels below the horizon whose floor point is within ``max_range_m``
-    of the robot (one per homography and image size: the camera does not move on it)."""
-    H = np.array(H_key, np.float64).reshape(3, 3)
-    v, u = np.mgrid[0 : shape[0], 0 : shape[1]].astype(np.float64)
-    ground = np.tensordot(H, np.stack([u, v, np.ones_like(u)]), axes=1)
-    w = ground[2]
-    safe = np.where(w > 0, w, 1.0)
-    inside = (w > 0) & (np.hypot(ground[0] / safe, ground[1] / safe) <= max_range_m)
-    inside.setflags(write=False)
-    return np.asarray(inside, np.bool_)
 
 
 def quarter_turn_offset(

@@ -10,8 +10,10 @@ import numpy as np
 import pytest
 
 from app.config import load_config
+from app.mapping.calibration import FloorCalibration
 from app.mapping.frames import Pose2D
 from app.mapping.ground_map import GroundMapper
+from app.mapping.ipm import build_ground_lookup
 from app.mapping.manhattan import (
     HeadingAxis,
     ManhattanParams,
@@ -24,9 +26,18 @@ CONFIG = Path(__file__).resolve().parents[2] / "config.toml"
 
 
 def calibration_H() -> tuple[np.ndarray, tuple[int, int]]:
-    config = load_config(CONFIG)
-    calibration = sim_floor_calibration(camera_model(config))
+    calibration = sim_calibration()
     return calibration.H_ground_from_image, calibration.image_size
+
+
+def sim_calibration() -> FloorCalibration:
+    return sim_floor_calibration(camera_model(load_config(CONFIG)))
+
+
+def edges_of(gray: np.ndarray, floor: np.ndarray) -> np.ndarray:
+    calibration = sim_calibration()
+    near = build_ground_lookup(calibration, max_range_m=ManhattanParams().max_range_m).valid
+    return floor_edge_segments(gray, floor, calibration, near)
 
 
 def wall_foot_image(direction_rad: float, through_m: tuple[float, float]) -> tuple:
@@ -52,12 +63,11 @@ def wall_foot_image(direction_rad: float, through_m: tuple[float, float]) -> tup
 def test_the_floors_straight_edge_is_found_on_the_floor_in_its_direction(
     direction_deg: float,
 ) -> None:
-    H, _ = calibration_H()
     direction = math.radians(direction_deg)
     gray, floor = wall_foot_image(direction, (1.6, 0.2))
     # Anti-aliased, as a camera (and the renderer) sees an edge.
     gray = cv2.GaussianBlur(gray, (0, 0), 1.0)
-    segments = floor_edge_segments(gray, floor, H)
+    segments = edges_of(gray, floor)
     assert len(segments) >= 1
     longest = segments[np.argmax(segments[:, 1])]
     # A line has no sense: the direction is modulo a half turn.
@@ -66,18 +76,18 @@ def test_the_floors_straight_edge_is_found_on_the_floor_in_its_direction(
 
 
 def test_the_images_border_and_a_floor_without_edges_give_no_segments() -> None:
-    H, (width, height) = calibration_H()
+    width, height = sim_calibration().image_size
     gray = np.full((height, width), 150, np.uint8)
     # Floor everywhere below the horizon: its only boundaries are the horizon (no image
     # edge there) and the image's border.
     _, floor = wall_foot_image(0.0, (50.0, 0.0))
-    assert len(floor_edge_segments(gray, floor, H)) == 0
+    assert len(edges_of(gray, floor)) == 0
     # A strong image edge far from the floor's boundary is not the floor's edge.
     edged = gray.copy()
     edged[: height // 4, width // 2 :] = 20
-    assert len(floor_edge_segments(edged, np.ones_like(floor), H)) == 0
+    assert len(edges_of(edged, np.ones_like(floor))) == 0
     with pytest.raises(ValueError, match="differ"):
-        floor_edge_segments(gray, floor[:-1], H)
+        edges_of(gray, floor[:-1])
 
 
 def test_quarter_turn_offsets_fold_square_directions_together() -> None:
