@@ -25,11 +25,6 @@ from app.sim.setup import camera_model, renderer_from_config, sim_floor_calibrat
 CONFIG = Path(__file__).resolve().parents[2] / "config.toml"
 
 
-def calibration_H() -> tuple[np.ndarray, tuple[int, int]]:
-    calibration = sim_calibration()
-    return calibration.H_ground_from_image, calibration.image_size
-
-
 def sim_calibration() -> FloorCalibration:
     return sim_floor_calibration(camera_model(load_config(CONFIG)))
 
@@ -44,12 +39,11 @@ def wall_foot_image(direction_rad: float, through_m: tuple[float, float]) -> tup
     """A grey image of floor (light) meeting a wall (dark) along a straight line on the
     floor through ``through_m`` (robot frame) in ``direction_rad``; the floor is on the
     robot's side. Returns (gray, floor_mask)."""
-    H, (width, height) = calibration_H()
-    u, v = np.meshgrid(np.arange(width, dtype=np.float64), np.arange(height, dtype=np.float64))
-    ground = np.tensordot(H, np.stack([u, v, np.ones_like(u)]), axes=1)
-    below_horizon = ground[2] > 0
-    x = ground[0] / np.where(below_horizon, ground[2], 1.0)
-    y = ground[1] / np.where(below_horizon, ground[2], 1.0)
+    # Every pixel below the horizon, however far.
+    ground = build_ground_lookup(sim_calibration(), max_range_m=1e6)
+    below_horizon = ground.valid
+    x = np.where(below_horizon, ground.x_m, 0.0)
+    y = np.where(below_horizon, ground.y_m, 0.0)
     # Which side of the line: the robot (the origin) is on the floor's side.
     c, s = math.cos(direction_rad), math.sin(direction_rad)
     side = (x - through_m[0]) * s - (y - through_m[1]) * c
