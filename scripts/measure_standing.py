@@ -30,7 +30,7 @@ from measure_localization import TOURS, drive_tour  # noqa: E402
 
 from app.config import load_config  # noqa: E402
 from app.mapping.frontiers import FrontierSearch  # noqa: E402
-from app.mapping.ground_map import search_frontiers  # noqa: E402
+from app.mapping.ground_map import PROBE_STANDING_REACH_M, search_frontiers  # noqa: E402
 from app.sim.truth import map_truth_scores, marks_near_truth  # noqa: E402
 
 GEOMETRY = {
@@ -88,7 +88,8 @@ def table(command: str, rows: list[dict[str, object]]) -> str:
         "(`[mapping] standing_by_horizon = false`). *Standing near truth*: of the cells",
         "marked standing, the share within one cell of a real wall or box. *Probe-able",
         "edges*: of the occupied cells, the share the frontier search may probe (an edge",
-        "within 0.3 m of a standing cell is taken for a real one). *Search*: what the",
+        f"within {PROBE_STANDING_REACH_M:g} m of a cell seen standing is taken for a real one).",
+        "*Search*: what the",
         "frontier search at the tour's end picks, as shipped and with every edge",
         "probe-able.",
         "",

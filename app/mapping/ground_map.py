@@ -387,11 +387,14 @@ class _Adopted:
 
 STANDING_COLOUR_STRIDE = 4
 """Every this many standing pixels' colours vote on unlearning (thousands per test)."""
-PROBE_STANDING_REACH_M = 0.3
+PROBE_STANDING_REACH_M = 0.15
 """An occupied cell this close to one geometry saw standing, its foot seen there, is a
-real edge: not probed (`FloorMemory.standing_seen`). A foot placed where a frame's floor
-ended, below not-floor the tests could not judge (a threshold, the tiles past it), does
-not stop a probe: the look from close up tells a wall's lower part from another floor."""
+real edge: not probed (`FloorMemory.standing_seen`); a wall's foot is marked a cell or
+two off where its floor ends. No farther: a doorway's threshold lies on its walls' line,
+and 0.3 m from each jamb left a 1 m door no way through for the probe search. A foot
+placed where a frame's floor ended, below not-floor the tests could not judge (a
+threshold, the tiles past it), does not stop a probe: the look from close up tells a
+wall's lower part from another floor."""
 PROBE_GIVEN_UP_RADIUS_M = 0.8
 """Edges within this of a given-up edge probe are not probed again (`GroundMapper.frontiers`):
 the probe stood within the inflation radius plus two cells of its edge, and an edge

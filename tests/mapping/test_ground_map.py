@@ -340,6 +340,38 @@ def test_a_plain_walls_foot_is_remembered_standing_and_kept_from_edge_probes() -
     assert mapper.probe_edge_share() <= 1.0 - wall.sum() / occupied.sum() + 1e-9
 
 
+def test_a_doorway_between_walls_seen_standing_is_probed_through_its_threshold() -> None:
+    """A 1 m doorway whose threshold the map holds as an edge, on the line of two walls
+    whose feet geometry saw: the walls are no edge to probe, the threshold is, and the
+    probe search finds its way through the door to the unknown room past it (0.3 m kept
+    from each jamb left it none: the home ended at its kitchen door)."""
+    mapper, _, _ = sim_mapper()
+    grid = mapper.grid.world_grid
+    x, y = grid.cell_centers()
+    room = (np.abs(x) < 1.0) & (np.abs(y) < 1.0)
+    wall_line = (x >= 1.0) & (x < 1.1) & (np.abs(y) < 1.5)
+    door = wall_line & (np.abs(y) < 0.5)
+    walls = (wall_line & ~door) | ((np.abs(x) < 1.1) & (np.abs(y) >= 1.0) & (np.abs(y) < 1.1))
+    walls |= (x <= -1.0) & (x > -1.1) & (np.abs(y) < 1.1)
+    log_odds = np.zeros(grid.shape, np.float32)
+    log_odds[room] = -2.0
+    log_odds[walls | door] = 2.0
+    mapper.grid.log_odds[...] = log_odds
+    feet = np.flatnonzero(walls.reshape(-1)).astype(np.int64)
+    for _ in range(2):  # two tests saw each foot where it stands
+        mapper.memory.mark_standing(feet, seen_cells=feet)
+    probe_cells = mapper.frontier_probe_cells()
+    assert not (probe_cells & walls).any()
+    threshold = door & (np.abs(y) < 0.3)
+    assert probe_cells[threshold].all()
+    goal = mapper.frontiers(Pose2D(0.0, 0.0, 0.0)).goal
+    assert goal is not None and goal.probe and goal.edge_cells is not None
+    rows, cols = goal.edge_cells.T
+    assert door[rows, cols].all()
+    # It looks from inside the room, before the door.
+    assert 0.6 <= goal.xy[0] < 1.0 and abs(goal.xy[1]) < 0.5
+
+
 def test_a_floor_coloured_box_side_the_mask_half_calls_floor_is_mapped_at_its_foot() -> None:
     """Driving north past the home's wood-coloured ottoman, 0.14 m from its east side:
     the shipped segmenter calls the lower half of that side floor, which the floor
