@@ -14,12 +14,11 @@ on the floor through the floor homography. `HeadingAxis` learns the building's a
 from the first lines seen (odometry has not drifted yet) and then reads, in each frame
 it is handed with lines close to the axis, how far the heading has turned off it (the
 mapper hands it the frames where floor odometry missed: `GroundMapper.follow_floor`);
-a small Kalman
-filter weighs that against how far odometry may have drifted since. Lines further off
-than the filter expects (a diagonal wall, a box turned on the floor, a curved sofa) are
-not used, so a building that is not rectilinear corrects nothing rather than something
-wrong; a line a degree or two off the axis pulls the heading by part of that while only
-it is in view.
+a small Kalman filter weighs that against how far odometry may have drifted since.
+Lines further off than the filter expects (a diagonal wall, a box turned on the floor, a
+curved sofa) are not used, so a building that is not rectilinear corrects nothing
+rather than something wrong; a line a degree or two off the axis pulls the heading by
+part of that while only it is in view.
 
 Pure functions and a small state on numpy arrays; no I/O.
 """

@@ -349,7 +349,7 @@ def test_a_doorway_between_walls_seen_standing_is_probed_through_its_threshold()
     grid = mapper.grid.world_grid
     x, y = grid.cell_centers()
     room = (np.abs(x) < 1.0) & (np.abs(y) < 1.0)
-    wall_line = (x >= 1.0) & (x < 1.1) & (np.abs(y) < 1.5)
+    wall_line = (x >= 1.0) & (x < 1.1) & (np.abs(y) < 1.1)
     door = wall_line & (np.abs(y) < 0.5)
     walls = (wall_line & ~door) | ((np.abs(x) < 1.1) & (np.abs(y) >= 1.0) & (np.abs(y) < 1.1))
     walls |= (x <= -1.0) & (x > -1.1) & (np.abs(y) < 1.1)
