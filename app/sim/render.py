@@ -47,7 +47,7 @@ import numpy as np
 from numpy.typing import NDArray
 
 from app.mapping.frames import GroundGrid, Pose2D
-from app.sim.world import FloorTexture, World
+from app.sim.world import FloorTexture, World, mip_levels
 
 _NEAR_M = 0.01
 """Faces are clipped to this distance in front of the camera before projection."""
@@ -567,10 +567,9 @@ def _lit_levels(world: World, texture: FloorTexture) -> list[NDArray[np.uint8]]:
         return texture.levels
     x, y = texture.grid.cell_centers()
     lit = texture.levels[0] * world.light_gain(x, y)
-    levels = [np.clip(lit + 0.5, 0, 255).astype(np.uint8)]
-    while len(levels) < len(texture.levels):
-        levels.append(np.asarray(cv2.pyrDown(levels[-1]), np.uint8))
-    return levels
+    return mip_levels(
+        np.clip(lit + 0.5, 0, 255).astype(np.uint8), texture.surfaces, len(texture.levels)
+    )
 
 
 def _bgr(color: str) -> tuple[float, float, float]:

@@ -7,6 +7,7 @@ from __future__ import annotations
 import math
 from pathlib import Path
 
+import cv2
 import numpy as np
 import pytest
 
@@ -17,7 +18,14 @@ from app.mapping.occupancy import FREE, UNKNOWN
 from app.sim.render import CameraModel, Renderer
 from app.sim.setup import project_floor_points, renderer_from_config, world_from_config
 from app.sim.truth import coverage_reachable, marks_near_truth, reachable_free_mask
-from app.sim.world import DEFAULT_ROBOT_RADIUS_M, World, WorldError, load_named_world, parse_world
+from app.sim.world import (
+    DEFAULT_ROBOT_RADIUS_M,
+    World,
+    WorldError,
+    load_named_world,
+    mip_levels,
+    parse_world,
+)
 from app.sim.worlds import DEFAULT_WORLD_PATH, UnknownWorldError, resolve_world_path, world_names
 
 ROBOT_RADIUS_M = FloornavConfig().mapping.robot_radius_m
@@ -330,6 +338,27 @@ def test_rug_fades_from_its_colour_to_its_end_colour() -> None:
     assert np.abs(west - (0x20, 0x40, 0xC0)).max() <= 3
     assert np.abs(east - (0xC0, 0x40, 0x20)).max() <= 3
     assert np.abs(middle - (0x70, 0x40, 0x70)).max() <= 3
+
+
+def test_a_floors_mip_levels_do_not_blend_it_with_the_floor_next_to_it() -> None:
+    # A dark carpet beside the light floor, as behind a wall: far away (the coarser
+    # levels) the light floor keeps its own colour up to the line, and the carpet its.
+    world = parse_world(
+        PLAIN_ROOM + "[[floor_areas]]\nrect_m = [0.0, 2.0, 6.0, 4.0]\n"
+        "surface = { pattern = 'plain', color = '#202020', variation = 0.0 }\n"
+    )
+    texture = world.floor_raster(0.01)
+    assert set(np.unique(texture.surfaces)) == {0, 1}
+    for level in texture.levels[1:]:
+        assert set(np.unique(level)) == {0x20, 0x80}
+    # One surface: the plain pyramid.
+    plain = load_named_world("two-rooms").floor_raster(0.01)
+    image = plain.levels[0][:200, :200]
+    levels = mip_levels(image, np.zeros(image.shape[:2], np.int16), 4)
+    expected = [image]
+    for _ in range(3):
+        expected.append(cv2.pyrDown(expected[-1]))
+    assert all(np.array_equal(a, b) for a, b in zip(levels, expected, strict=True))
 
 
 def test_degenerate_light_area_is_named() -> None:
