@@ -9,8 +9,10 @@ sees wherever it looks: the floor's edge. Their direction in the world is fixed,
 direction seen from the robot gives the robot's heading, modulo a quarter turn.
 
 `floor_edge_segments` finds those lines: image edges (Canny) along the colour floor's
-boundary, joined into segments (probabilistic Hough, the thesis's junction tools), put
-on the floor through the floor homography. `HeadingAxis` learns the building's axis
+boundary, joined into segments (probabilistic Hough, the thesis's junction tools), each
+fitted again on the floor to its own edge pixels, moved to the gradient's peak (a wall
+beside the robot's way seen a pixel nearer at its far end is a degree off on the
+floor). `HeadingAxis` learns the building's axis
 from the first lines seen (odometry has not drifted yet) and then reads, in each frame
 it is handed with lines close to the axis, how far the heading has turned off it (the
 mapper hands it the frames where floor odometry missed: `GroundMapper.follow_floor`);
@@ -148,20 +150,99 @@ def floor_edge_segments(
     if found is None:
         return np.zeros((0, 2), np.float64)
     ends = np.asarray(found, np.float64).reshape(-1, 4)
-    # Both ends of every segment onto the floor at once (NaN above the horizon).
-    ground = calibration.image_to_ground(np.concatenate([ends[:, :2], ends[:, 2:]]))
-    n = len(ends)
-    start, stop = ground[:n], ground[n:]
-    delta = stop - start
-    length = np.hypot(delta[:, 0], delta[:, 1])
-    reach = np.maximum(np.hypot(*start.T), np.hypot(*stop.T))
-    with np.errstate(invalid="ignore"):
+    rows, cols = np.nonzero(edges)
+    pixels = np.column_stack((cols, rows)).astype(np.float64)
+    # Each segment is fitted again, on the floor, to its own edge pixels, each moved to
+    # where its edge really is: Hough's ends lie on a 1-pixel, half-degree lattice, and a
+    # hard edge's pixels on either side of it at random, and the floor homography turns
+    # a pixel's error along a line into a degree or more of its direction.
+    located = _edge_centres(gray, pixels)
+    segments = []
+    for x0, y0, x1, y1 in ends:
+        fitted = _fit_on_floor(pixels, located, (x0, y0, x1, y1), calibration)
+        if fitted is None:
+            continue
+        direction, length, reach = fitted
         # A pixel's worth of slack: the ends are where Hough put them, near kept pixels.
-        keep = (reach <= 1.05 * p.max_range_m) & (length >= p.min_length_m)
-    direction = np.arctan2(delta[keep, 1], delta[keep, 0])
+        if reach <= 1.05 * p.max_range_m and length >= p.min_length_m:
+            segments.append((direction, length))
+    return np.asarray(segments, np.float64).reshape(-1, 2)
+
+
+SEGMENT_SUPPORT_PX = 1.5
+"""Edge pixels this close across a Hough segment (and along it, within a pixel of its
+ends) are its own."""
+MIN_SUPPORT = 5
+"""A segment fitted to fewer edge pixels on the floor is not used."""
+
+
+def _edge_centres(gray: NDArray[np.uint8], pixels: NDArray[np.float64]) -> NDArray[np.float64]:
+    """(n, 2) the edge ``pixels`` (x, y) moved to the peak of the gradient's magnitude
+    across the edge (a parabola through it and its two neighbours along the gradient;
+    at most half a pixel): Canny keeps one pixel of the two a hard edge lies between,
+    whichever has the larger gradient by a grey level."""
+    if len(pixels) == 0:
+        return pixels
+    image = np.asarray(gray, np.float32)
+    gx = cv2.Sobel(image, cv2.CV_32F, 1, 0, ksize=3)
+    gy = cv2.Sobel(image, cv2.CV_32F, 0, 1, ksize=3)
+    magnitude = cv2.magnitude(gx, gy)
+    cols = pixels[:, 0].astype(np.intp)
+    rows = pixels[:, 1].astype(np.intp)
+    across = np.stack([gx[rows, cols], gy[rows, cols]], axis=1).astype(np.float64)
+    across /= np.maximum(np.hypot(across[:, 0], across[:, 1]), 1e-9)[:, None]
+
+    def at(points: NDArray[np.float64]) -> NDArray[np.float64]:
+        map_x = np.ascontiguousarray(points[:, 0], np.float32).reshape(1, -1)
+        map_y = np.ascontiguousarray(points[:, 1], np.float32).reshape(1, -1)
+        sampled = cv2.remap(
+            magnitude, map_x, map_y, cv2.INTER_LINEAR, borderMode=cv2.BORDER_REPLICATE
+        )
+        return np.asarray(sampled, np.float64).reshape(-1)
+
+    before = at(pixels - across)
+    centre = magnitude[rows, cols].astype(np.float64)
+    after = at(pixels + across)
+    curvature = before - 2.0 * centre + after
+    peaked = curvature < -1e-6
+    shift = np.zeros(len(pixels))
+    shift[peaked] = 0.5 * (before[peaked] - after[peaked]) / curvature[peaked]
+    return pixels + np.clip(shift, -0.5, 0.5)[:, None] * across
+
+
+def _fit_on_floor(
+    pixels: NDArray[np.float64],
+    located: NDArray[np.float64],
+    ends: tuple[float, float, float, float],
+    calibration: FloorCalibration,
+) -> tuple[float, float, float] | None:
+    """The line through one Hough segment's edge pixels on the floor (total least
+    squares): its direction modulo a half turn in [-pi/2, pi/2), its length and the
+    furthest reach of its pixels from the robot; None with too few pixels on the floor."""
+    x0, y0, x1, y1 = ends
+    length_px = math.hypot(x1 - x0, y1 - y0)
+    if length_px == 0.0:
+        return None
+    along_unit = np.array([x1 - x0, y1 - y0]) / length_px
+    offset = pixels - np.array([x0, y0])
+    along = offset @ along_unit
+    across = offset @ np.array([-along_unit[1], along_unit[0]])
+    own = (np.abs(across) <= SEGMENT_SUPPORT_PX) & (along >= -1.0) & (along <= length_px + 1.0)
+    if np.count_nonzero(own) < MIN_SUPPORT:
+        return None
+    ground = calibration.image_to_ground(located[own])
+    ground = ground[np.isfinite(ground).all(axis=1)]
+    if len(ground) < MIN_SUPPORT:
+        return None
+    centred = ground - ground.mean(axis=0)
+    _, vectors = np.linalg.eigh(centred.T @ centred)
+    line = vectors[:, 1]  # the direction of largest spread
+    spread = centred @ line
+    direction = math.atan2(float(line[1]), float(line[0]))
     # A line's direction modulo a half turn, in [-pi/2, pi/2).
     direction = (direction + math.pi / 2) % math.pi - math.pi / 2
-    return np.stack([direction, length[keep]], axis=1)
+    reach = float(np.max(np.hypot(ground[:, 0], ground[:, 1])))
+    return direction, float(spread.max() - spread.min()), reach
 
 
 def quarter_turn_offset(
