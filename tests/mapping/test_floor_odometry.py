@@ -82,12 +82,13 @@ def test_the_pose_follows_the_floors_motion_where_the_wheels_slip() -> None:
 def test_driving_along_the_planks_their_seams_leave_the_travel_to_the_wheels() -> None:
     # A shift along parallel seams changes nothing the views show (the aperture
     # problem): the wheels' over-read travel stays while the robot drives along them;
-    # the heading is still the floor's.
+    # the heading is still the floor's (the wheels' is 16 degrees off).
     mapper, renderer = mapper_and_renderer(floor_odometry=True)
     truth, wheels, fused = drive(mapper, renderer, 0.0)
     off_m, off_rad = pose_error(fused, truth)
-    assert 0.005 < off_m < 0.03 and off_rad < math.radians(0.15)
+    assert 0.005 < off_m < 0.03 and off_rad < math.radians(0.2)
     assert off_m < 0.25 * pose_error(wheels, truth)[0]
+    assert off_rad < 0.02 * pose_error(wheels, truth)[1]
 
 
 def test_a_floor_without_texture_leaves_the_wheels_alone() -> None:
