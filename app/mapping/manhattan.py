@@ -163,7 +163,7 @@ def floor_edge_segments(
         if fitted is None:
             continue
         direction, length, reach = fitted
-        # A pixel's worth of slack: the ends are where Hough put them, near kept pixels.
+        # Some slack: the pixels kept in range moved up to half a pixel to their edge.
         if reach <= 1.05 * p.max_range_m and length >= p.min_length_m:
             segments.append((direction, length))
     return np.asarray(segments, np.float64).reshape(-1, 2)
