@@ -709,9 +709,10 @@ class FloorTexture:
 
 
 def mip_levels(
-    image: NDArray[np.uint8], surfaces: NDArray[np.int16], count: int
+    image: NDArray[np.uint8], surfaces: NDArray[np.int16], count: int | None = None
 ) -> list[NDArray[np.uint8]]:
-    """``image`` and ``count - 1`` levels below it, each ``cv2.pyrDown`` of the last, but
+    """``image`` and ``count - 1`` levels below it (None: down to about 16 texels a side,
+    at most 10 levels), each ``cv2.pyrDown`` of the last, but
     each surface's texels averaged only with its own: a room's carpet does not bleed
     under the wall into the vinyl next to it. Blended, the band along every wall
     between two floors took the other room's colour a few centimetres deep, a dark line
@@ -722,7 +723,11 @@ def mip_levels(
     levels = [image]
     labels = surfaces
     present = np.unique(surfaces)
-    while len(levels) < count:
+    while (
+        len(levels) < count
+        if count is not None
+        else min(levels[-1].shape[:2]) > 16 and len(levels) < 10
+    ):
         shrunk = np.asarray(cv2.pyrDown(levels[-1]), np.uint8)
         below = labels[::2, ::2]  # pyrDown's size: (n + 1) // 2
         if len(present) > 1:
@@ -891,12 +896,7 @@ class World:
                 sub = np.ix_(rows, cols)
                 image[sub] = _area_texture(area, x[sub], y[sub], texel_m=texel_m)
                 surfaces[sub] = number
-        count = 1
-        size = min(image.shape[:2])
-        while size > 16 and count < 10:
-            size = (size + 1) // 2
-            count += 1
-        texture = FloorTexture(grid, mip_levels(image, surfaces, count), surfaces)
+        texture = FloorTexture(grid, mip_levels(image, surfaces), surfaces)
         self._texture_cache[texel_m] = texture
         return texture
 
