@@ -20,7 +20,11 @@ a small Kalman filter weighs that against how far odometry may have drifted sinc
 Lines further off than the filter expects (a diagonal wall, a box turned on the floor, a
 curved sofa) are not used, so a building that is not rectilinear corrects nothing
 rather than something wrong; a line a degree or two off the axis pulls the heading by
-part of that while only it is in view.
+part of that while only it is in view. A heading that has turned further off than the
+gate (a spin turn's slip on a floor odometry could not follow) is turned back only
+when frame after frame, from views apart, the lines agree on one offset and none lie
+inside the gate: one frame's stray line is no evidence, a building seen consistently
+askew is.
 
 Pure functions and a small state on numpy arrays; no I/O.
 """
@@ -28,6 +32,7 @@ Pure functions and a small state on numpy arrays; no I/O.
 from __future__ import annotations
 
 import math
+from collections import deque
 from dataclasses import dataclass
 
 import cv2
@@ -70,6 +75,14 @@ class ManhattanParams:
     floor_drift_share : of that variance, the share left where floor odometry holds the
         motion (a tenth of the wheels' drift: it keeps headings to a few hundredths of a
         degree a step).
+    recover_limit_rad : beyond the gate, segments up to this far off the axis are
+        evidence that the heading has turned away (further off, a quarter turn's
+        ambiguity nears)...
+    recover_frames, recover_agreement_rad : ...and the heading is turned back by their
+        offset once this many frames in a row (none with segments inside the gate) agree
+        on it to within this either side of their median...
+    recover_travel_m, recover_turn_rad : ...seen from views this far apart (travel or
+        turn: not one object's edge seen again and again from one place).
     """
 
     band_px: int = 9
@@ -92,6 +105,11 @@ class ManhattanParams:
     drift_rad2_per_m: float = math.radians(1.0) ** 2
     drift_rad2_per_rad: float = math.radians(1.0) ** 2
     floor_drift_share: float = 0.01
+    recover_limit_rad: float = math.radians(25.0)
+    recover_frames: int = 6
+    recover_agreement_rad: float = math.radians(1.5)
+    recover_travel_m: float = 0.5
+    recover_turn_rad: float = 0.5
 
 
 def floor_edge_segments(
@@ -274,17 +292,25 @@ class HeadingAxis:
     ----------
     axis_rad : the axis (modulo a quarter turn), None until learned.
     frames_used : frames that had segments inside the gate (corrections made).
+    recoveries : headings turned back from beyond the gate.
     """
 
     def __init__(self, params: ManhattanParams | None = None) -> None:
         self.params = params if params is not None else ManhattanParams()
         self.axis_rad: float | None = None
         self.frames_used = 0
+        self.recoveries = 0
         self.variance_rad2 = self.params.start_sigma_rad**2
         """The heading's variance about the axis (radians squared)."""
         self._learning: list[tuple[float, float]] = []
         """(direction modulo a quarter turn, length) of the segments seen while
         learning."""
+        self._travel_m = 0.0
+        self._turned_rad = 0.0
+        """Odometry's travel and turn so far (how far apart two frames' views are)."""
+        self._beyond: deque[tuple[float, float, float]] = deque(maxlen=self.params.recover_frames)
+        """(offset, travel, turn) of the latest frames in a row whose segments all lay
+        beyond the gate (`_recover`)."""
 
     def moved(self, distance_m: float, turn_rad: float, *, floor_held: bool = False) -> None:
         """Odometry moved the robot: the heading is that much less certain (a random
@@ -292,6 +318,8 @@ class HeadingAxis:
         odometry lined the floors up over this motion, which leaves
         ``floor_drift_share`` of the wheels' drift)."""
         p = self.params
+        self._travel_m += abs(distance_m)
+        self._turned_rad += abs(turn_rad)
         share = p.floor_drift_share if floor_held else 1.0
         self.variance_rad2 += share * p.drift_rad2_per_m * abs(distance_m)
         self.variance_rad2 += share * p.drift_rad2_per_rad * abs(turn_rad)
@@ -310,7 +338,8 @@ class HeadingAxis:
         [``min_gate_rad``, ``gate_rad``]. A heading that odometry keeps well (floor
         odometry) keeps the gate narrow, so a box a few degrees askew is not taken for a
         wall; the gain falls as the heading becomes certain, so one frame's stray line
-        moves it little."""
+        moves it little. Frames whose segments all lie beyond the gate go to
+        `_recover`."""
         p = self.params
         if len(segments) == 0:
             return None
@@ -326,11 +355,42 @@ class HeadingAxis:
         gate = min(max(p.gate_sigmas * spread, p.min_gate_rad), p.gate_rad)
         near = np.abs(offset) <= gate
         if float(length[near].sum()) < p.min_frame_length_m:
-            return None
+            return self._recover(offset, length, gate)
+        self._beyond.clear()
         self.frames_used += 1
         gain = self.variance_rad2 / (self.variance_rad2 + p.line_sigma_rad**2)
         self.variance_rad2 *= 1.0 - gain
         return -gain * _weighted_median(offset[near], length[near])
+
+    def _recover(
+        self, offset: NDArray[np.float64], length: NDArray[np.float64], gate: float
+    ) -> float | None:
+        """A frame with no segment inside the gate: its segments between the gate and
+        ``recover_limit_rad`` give one offset (their length-weighted median); once
+        ``recover_frames`` such frames in a row, from views ``recover_travel_m`` or
+        ``recover_turn_rad`` apart, agree on it within ``recover_agreement_rad``, the
+        heading turns back by all of it (their median) and is as sure as when the axis was
+        learned. Returns that turn, or None."""
+        p = self.params
+        far = (np.abs(offset) > gate) & (np.abs(offset) <= p.recover_limit_rad)
+        if float(length[far].sum()) < p.min_frame_length_m:
+            return None
+        self._beyond.append(
+            (_weighted_median(offset[far], length[far]), self._travel_m, self._turned_rad)
+        )
+        if len(self._beyond) < p.recover_frames:
+            return None
+        offsets = np.array([seen[0] for seen in self._beyond])
+        middle = float(np.median(offsets))
+        if float(np.max(np.abs(offsets - middle))) > p.recover_agreement_rad:
+            return None
+        first, last = self._beyond[0], self._beyond[-1]
+        if last[1] - first[1] < p.recover_travel_m and last[2] - first[2] < p.recover_turn_rad:
+            return None
+        self._beyond.clear()
+        self.recoveries += 1
+        self.variance_rad2 = p.start_sigma_rad**2
+        return -middle
 
     def _learn(self, world_rad: NDArray[np.float64], length: NDArray[np.float64]) -> None:
         """Keep the segments' directions modulo a quarter turn; once they hold
@@ -370,6 +430,7 @@ class HeadingAxis:
         return {
             "axis_deg": None if self.axis_rad is None else round(math.degrees(self.axis_rad), 2),
             "corrections": self.frames_used,
+            "recoveries": self.recoveries,
         }
 
     def restore(self, axis_rad: float | None) -> None:
@@ -377,3 +438,4 @@ class HeadingAxis:
         self.axis_rad = axis_rad
         self.variance_rad2 = self.params.start_sigma_rad**2
         self._learning.clear()
+        self._beyond.clear()

@@ -184,6 +184,58 @@ def test_lines_beyond_the_gate_or_too_short_or_none_correct_nothing() -> None:
     assert one is not None and one == pytest.approx(two)
 
 
+def test_a_heading_turned_beyond_the_gate_comes_back_once_views_apart_agree() -> None:
+    params = ManhattanParams(gate_rad=math.radians(6.0), recover_limit_rad=math.radians(25.0))
+    axis = HeadingAxis(params)
+    axis.restore(0.0)
+    # A spin turn's slip left the estimate 12 degrees off: the walls' lines, 30 degrees
+    # off the true nose, appear at 42 - 30 = 12 degrees off the axis, beyond the gate.
+    wall = segments((-30.0, 1.2))
+    heading = math.radians(42.0)
+    for _ in range(5):
+        axis.moved(0.2, 0.0)
+        assert axis.observe(wall, heading) is None
+    axis.moved(0.2, 0.0)
+    turn = axis.observe(wall, heading)
+    assert turn == pytest.approx(-math.radians(12.0), abs=1e-9)
+    assert axis.recoveries == 1 and axis.frames_used == 0
+    assert axis.variance_rad2 == pytest.approx(params.start_sigma_rad**2)
+
+
+def test_no_turn_back_from_one_place_a_stray_frame_a_line_in_the_gate_or_past_the_limit() -> None:
+    axis = HeadingAxis(ManhattanParams(gate_rad=math.radians(6.0)))
+    axis.restore(0.0)
+    wall, heading = segments((-30.0, 1.2)), math.radians(42.0)
+    # Seen from one place (0.05 m and no turn between frames): one object, seen again.
+    for _ in range(8):
+        axis.moved(0.05, 0.0)
+        assert axis.observe(wall, heading) is None
+    # A frame whose lines say 16 degrees keeps the row from agreeing while it is in it
+    # (the row holds the latest six)...
+    axis.restore(0.0)
+    axis.moved(0.3, 0.0)
+    assert axis.observe(wall, math.radians(46.0)) is None
+    for _ in range(5):
+        axis.moved(0.3, 0.0)
+        assert axis.observe(wall, heading) is None
+    axis.moved(0.3, 0.0)
+    assert axis.observe(wall, heading) == pytest.approx(-math.radians(12.0), abs=1e-9)
+    # ...a frame with a line inside the gate starts the row again (and corrects)...
+    axis.restore(0.0)
+    for k in range(10):
+        axis.moved(0.3, 0.0)
+        frame = segments((-30.0, 1.2), (60.0 - 10.0, 0.8)) if k == 4 else wall
+        turn = axis.observe(frame, heading)
+        assert (turn is not None) == (k == 4)
+    assert axis.recoveries == 1 and axis.frames_used == 1
+    # ...and lines further off than recover_limit_rad are no evidence.
+    axis.restore(0.0)
+    for _ in range(10):
+        axis.moved(0.3, 0.0)
+        assert axis.observe(wall, math.radians(60.0)) is None
+    assert axis.recoveries == 1
+
+
 @pytest.mark.parametrize("floor_odometry", [False, True])
 def test_the_mapper_turns_a_drifted_heading_back_about_the_robot(floor_odometry: bool) -> None:
     config = load_config(CONFIG, mapping={"floor_odometry": floor_odometry})

@@ -109,7 +109,7 @@ async def test_the_running_daemon_follows_the_floors_motion_and_reports_it() -> 
         assert steps["applied"] >= 3 and steps["steps"] >= steps["applied"]
         assert report["stage_ms"]["floor_odometry"]["p50"] > 0
         # The building's axis rides along (learning it takes 20 m of wall lines).
-        assert set(report["heading_axis"]) == {"axis_deg", "corrections"}
+        assert set(report["heading_axis"]) == {"axis_deg", "corrections", "recoveries"}
 
 
 async def test_the_geometric_tests_run_beside_the_mapping_thread_and_their_results_arrive() -> None:
