@@ -117,7 +117,8 @@ def table(command: str) -> str:
         "plans and saves it); *coverage, evidence alone*: of the evidence that travel",
         "has not faded (`map_truth_live`; '-' for reports before it).",
         "",
-        f"Command: `{command}`",
+        f"Latest command: `{command}` (the rows of other builds are earlier runs of",
+        "this script; the build column says which).",
         "",
         "| build | world | seed | s | reachable coverage | coverage | coverage, evidence alone | "
         "time to 50 % / 90 % s | "
