@@ -258,9 +258,8 @@ class MappingConfig(StrictModel):
     by floor odometry on a floor without texture) would otherwise smear the map. Lines
     further than ``manhattan_gate_rad`` off the axis are never used: in a building that
     is not rectilinear it does nothing. ~2-6 ms a frame (Canny, Hough; OpenCV, nogil),
-    off the motors' path, while the axis is learned or floor odometry misses (where it
-    holds, it holds the heading better, and the lines are looked at twice a second, to
-    turn back only an offset they agree on from views apart)."""
+    off the motors' path, only while the axis is learned or floor odometry misses (where
+    it holds, it holds the heading better)."""
     manhattan_gate_rad: Annotated[float, Field(gt=0.0, le=0.3)] = 0.105
     manhattan_line_sigma_rad: Annotated[float, Field(gt=0.0, le=0.2)] = 0.026
 

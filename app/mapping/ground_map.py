@@ -416,11 +416,6 @@ def blind_zone_cells(birdseye: BirdseyeMap, half_width_m: float) -> NDArray[np.b
     return np.asarray(strip & ~birdseye.visible & (x < nearest_seen_x), dtype=np.bool_)
 
 
-AXIS_HELD_LOOK_S = 0.5
-"""While floor odometry holds the heading, the building's lines are looked at this often
-(2-6 ms a look; `HeadingAxis` turns the heading back only when looks from views apart
-agree)."""
-
 GIVEN_UP_RADIUS_M = 0.4
 """Cells this close to a given-up goal make no frontier (floor under where the robot
 started, a spot no pose shows)."""
@@ -591,8 +586,6 @@ class GroundMapper:
         None: off)."""
         self._axis_pose: Pose2D | None = None
         """The pose of the last frame the axis read (its travel since widens the gate)."""
-        self._axis_held_due_s = -math.inf
-        """When the lines are next looked at while floor odometry holds the heading."""
         self._axis_range_px = (
             None
             if self.heading_axis is None
@@ -920,9 +913,8 @@ class GroundMapper:
         ``T_world_robot``: ``T_corrected_odom`` to left-multiply onto odometry, or None
         (both off, neither due, the floors did not line up and no straight edge near the
         axis; `floor_odometry_steps` counts the frames compared). Called after the
-        frame's map is out, so the steps (~5 ms; the axis's ~2-6 ms, while it
-        learns or floor odometry misses, and every `AXIS_HELD_LOOK_S` while it holds)
-        are not on the way to the motors; the frame
+        frame's map is out, so the steps (~5 ms; the axis's ~2-6 ms, only while it
+        learns or floor odometry misses) are not on the way to the motors; the frame
         itself stays fused at its odometry pose, off by at most one step's slip."""
         step = (
             self._floor_odometry(image, floor_mask, T_world_robot, now_s)
@@ -934,10 +926,8 @@ class GroundMapper:
         pose = T_world_robot if step is None else step.compose(T_world_robot)
         last, self._axis_pose = self._axis_pose, pose
         # The key frame's floors lined up last time: floor odometry holds the heading
-        # to hundredths of a degree a step, better than any line (and lines off the floor
-        # plane, a box's top edge seen over many frames, would pull it): the lines are
-        # looked at only now and then, for an offset they all agree on for a while (the
-        # heading's error when floor odometry took over, which it keeps).
+        # to hundredths of a degree, better than any line (and lines off the floor plane,
+        # a box's top edge seen over many frames, would pull it): the axis only learns.
         floor_held = self.floor_odometry and self._key_misses == 0
         if last is not None:
             self.heading_axis.moved(
@@ -946,9 +936,7 @@ class GroundMapper:
                 floor_held=floor_held,
             )
         if floor_held and self.heading_axis.axis_rad is not None:
-            if now_s < self._axis_held_due_s:
-                return step
-            self._axis_held_due_s = now_s + AXIS_HELD_LOOK_S
+            return step  # nothing to learn, nothing to correct: the lines are not looked for
         assert self._axis_range_px is not None
         if floor_mask.shape != self._axis_range_px.shape:
             return step  # frames of another size than calibrated: no floor lines to trust

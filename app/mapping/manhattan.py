@@ -21,11 +21,10 @@ Lines further off than the filter expects (a diagonal wall, a box turned on the 
 curved sofa) are not used, so a building that is not rectilinear corrects nothing
 rather than something wrong; a line a degree or two off the axis pulls the heading by
 part of that while only it is in view. A heading that has turned further off than the
-gate (a spin turn's slip on a floor odometry could not follow), or that floor odometry
-holds a few degrees off (it keeps the heading from step to step, not the error it
-started with), is turned back only when frame after frame, from views apart, the lines
-agree on one offset: one frame's stray line is no evidence, a building seen
-consistently askew is.
+gate (a spin turn's slip on a floor odometry could not follow) is turned back only
+when frame after frame, from views apart, the lines agree on one offset and none lie
+inside the gate: one frame's stray line is no evidence, a building seen consistently
+askew is.
 
 Pure functions and a small state on numpy arrays; no I/O.
 """
@@ -84,9 +83,6 @@ class ManhattanParams:
         on it to within this either side of their median...
     recover_travel_m, recover_turn_rad : ...seen from views this far apart (travel or
         turn: not one object's edge seen again and again from one place).
-    held_min_offset_rad : where floor odometry holds the heading, such a row turns it
-        back only if it agrees on at least this offset (smaller ones are the lines'
-        own noise).
     """
 
     band_px: int = 9
@@ -114,7 +110,6 @@ class ManhattanParams:
     recover_agreement_rad: float = math.radians(1.5)
     recover_travel_m: float = 0.5
     recover_turn_rad: float = 0.5
-    held_min_offset_rad: float = math.radians(1.5)
 
 
 def floor_edge_segments(
@@ -297,7 +292,7 @@ class HeadingAxis:
     ----------
     axis_rad : the axis (modulo a quarter turn), None until learned.
     frames_used : frames that had segments inside the gate (corrections made).
-    recoveries : headings turned back by a row of frames agreeing (`_recover`).
+    recoveries : headings turned back from beyond the gate.
     """
 
     def __init__(self, params: ManhattanParams | None = None) -> None:
@@ -314,8 +309,8 @@ class HeadingAxis:
         self._turned_rad = 0.0
         """Odometry's travel and turn so far (how far apart two frames' views are)."""
         self._beyond: deque[tuple[float, float, float]] = deque(maxlen=self.params.recover_frames)
-        """(offset, travel, turn) of the latest frames in a row whose segments lay
-        beyond the gate, or that floor odometry held (`_recover`)."""
+        """(offset, travel, turn) of the latest frames in a row whose segments all lay
+        beyond the gate (`_recover`)."""
 
     def moved(self, distance_m: float, turn_rad: float, *, floor_held: bool = False) -> None:
         """Odometry moved the robot: the heading is that much less certain (a random
@@ -334,7 +329,7 @@ class HeadingAxis:
     ) -> float | None:
         """One frame's `floor_edge_segments` seen at the estimated ``heading_rad``: the
         heading correction (radians, to add to the heading), or None (no axis yet, no
-        segment near it, or the segments only taught the axis).
+        segment near it, or not ``may_correct``: the segments only teach the axis).
 
         A one-state Kalman filter on the heading's offset from the axis: the frame's
         measurement is its segments' length-weighted median offset (noise
@@ -344,9 +339,7 @@ class HeadingAxis:
         odometry) keeps the gate narrow, so a box a few degrees askew is not taken for a
         wall; the gain falls as the heading becomes certain, so one frame's stray line
         moves it little. Frames whose segments all lie beyond the gate go to
-        `_recover`, and so do frames that may not correct (``may_correct`` False: floor
-        odometry held the heading's last step, better than a line would), whose lines
-        can only show a lasting offset."""
+        `_recover`."""
         p = self.params
         if len(segments) == 0:
             return None
@@ -355,9 +348,9 @@ class HeadingAxis:
         if self.axis_rad is None:
             self._learn(world, length)
             return None
-        offset = quarter_turn_offset(world, self.axis_rad)
         if not may_correct:
-            return self._recover(offset, length, None)
+            return None
+        offset = quarter_turn_offset(world, self.axis_rad)
         spread = math.sqrt(self.variance_rad2 + p.line_sigma_rad**2)
         gate = min(max(p.gate_sigmas * spread, p.min_gate_rad), p.gate_rad)
         near = np.abs(offset) <= gate
@@ -370,19 +363,16 @@ class HeadingAxis:
         return -gain * _weighted_median(offset[near], length[near])
 
     def _recover(
-        self, offset: NDArray[np.float64], length: NDArray[np.float64], gate: float | None
+        self, offset: NDArray[np.float64], length: NDArray[np.float64], gate: float
     ) -> float | None:
-        """A frame with no segment inside the ``gate`` (None: floor odometry held the
-        heading, and every segment counts): its segments beyond it and within
+        """A frame with no segment inside the gate: its segments between the gate and
         ``recover_limit_rad`` give one offset (their length-weighted median); once
         ``recover_frames`` such frames in a row, from views ``recover_travel_m`` or
-        ``recover_turn_rad`` apart, agree on it within ``recover_agreement_rad`` (and,
-        held, on at least ``held_min_offset_rad``), the heading turns back by all of it
-        (their median) and is as sure as when the axis was learned. Returns that turn,
-        or None."""
+        ``recover_turn_rad`` apart, agree on it within ``recover_agreement_rad``, the
+        heading turns back by all of it (their median) and is as sure as when the axis was
+        learned. Returns that turn, or None."""
         p = self.params
-        beyond = 0.0 if gate is None else gate
-        far = (np.abs(offset) > beyond) & (np.abs(offset) <= p.recover_limit_rad)
+        far = (np.abs(offset) > gate) & (np.abs(offset) <= p.recover_limit_rad)
         if float(length[far].sum()) < p.min_frame_length_m:
             return None
         self._beyond.append(
@@ -393,8 +383,6 @@ class HeadingAxis:
         offsets = np.array([seen[0] for seen in self._beyond])
         middle = float(np.median(offsets))
         if float(np.max(np.abs(offsets - middle))) > p.recover_agreement_rad:
-            return None
-        if abs(middle) < p.held_min_offset_rad:
             return None
         first, last = self._beyond[0], self._beyond[-1]
         if last[1] - first[1] < p.recover_travel_m and last[2] - first[2] < p.recover_turn_rad:
