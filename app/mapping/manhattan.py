@@ -21,7 +21,7 @@ Lines further off than the filter expects (a diagonal wall, a box turned on the 
 curved sofa) are not used, so a building that is not rectilinear corrects nothing
 rather than something wrong; a line a degree or two off the axis pulls the heading by
 part of that while only it is in view. A heading that has turned further off than the
-gate (a spin turn's slip on a floor odometry could not follow) is turned back only
+gate (a spin turn's slip where floor odometry could not follow it) is turned back only
 when frame after frame, from views apart, the lines agree on one offset and none lie
 inside the gate: one frame's stray line is no evidence, a building seen consistently
 askew is.
