@@ -567,9 +567,7 @@ def _lit_levels(world: World, texture: FloorTexture) -> list[NDArray[np.uint8]]:
         return texture.levels
     x, y = texture.grid.cell_centers()
     lit = texture.levels[0] * world.light_gain(x, y)
-    return mip_levels(
-        np.clip(lit + 0.5, 0, 255).astype(np.uint8), texture.surfaces, len(texture.levels)
-    )
+    return mip_levels(np.clip(lit + 0.5, 0, 255).astype(np.uint8), texture.surfaces)
 
 
 def _bgr(color: str) -> tuple[float, float, float]:
